@@ -284,7 +284,7 @@ class Ckm(_Model):
     size_m: Vec2 = (100.0, 100.0)
     cell_size_m: float = Field(5.0, gt=0)
     height_m: float = 1.5
-    tiles: tuple[int, int] = (2, 2)
+    tiles: tuple[int, int] = Field((2, 2), description="tiles along x, along y")
 
     @field_validator("tiles")
     @classmethod
@@ -367,7 +367,11 @@ def load_scene_config(scene_dir: str | Path) -> SceneConfig:
     try:
         cfg = SceneConfig.model_validate(raw)
     except ValidationError as exc:
-        raise ConfigError([f"{path}: {_loc(e['loc'])}: {e['msg']}" for e in exc.errors()]) from None
+        errors = exc.errors()
+        # A list whose only item failed also reports itself "too short": noise, not a problem.
+        errors = [e for e in errors if not (e["type"] == "too_short" and any(
+            len(o["loc"]) > len(e["loc"]) and o["loc"][:len(e["loc"])] == e["loc"] for o in errors))]
+        raise ConfigError([f"{path}: {_loc(e['loc'])}: {e['msg']}" for e in errors]) from None
     problems = []
     if cfg.name != scene_dir.resolve().name:
         problems.append(f"{path}: name: {cfg.name!r} differs from the scene directory's name "

@@ -56,7 +56,7 @@ def evaluate_waypoints(platform: Platform, t_s: np.ndarray) -> dict[str, np.ndar
     vh2 = vel[:, 0] ** 2 + vel[:, 1] ** 2
     yaw_rate = np.where(vh2 > _EPS_SPEED,
                         (vel[:, 0] * acc[:, 1] - vel[:, 1] * acc[:, 0]) / np.maximum(vh2, _EPS_SPEED), 0.0)
-    quat = Rotation.from_euler("z", yaw).as_quat()  # scalar-last x, y, z, w
+    quat = Rotation.from_euler("z", yaw[:, None]).as_quat()  # scalar-last x, y, z, w
     ang = np.zeros_like(pos)
     ang[:, 2] = yaw_rate  # level platform: body z is world z
     return {"position_m": pos, "velocity_mps": vel, "acceleration_mps2": acc,
@@ -122,3 +122,17 @@ def poses_at(traj: xr.Dataset, platform: str, times_ns: np.ndarray) -> dict[str,
         out[k] = np.stack([np.interp(q, t, v[:, i]) for i in range(3)], axis=-1)
     out["orientation_xyzw"] = Slerp(t, Rotation.from_quat(p["orientation_xyzw"].values))(q).as_quat()
     return out
+
+
+def check_clear_of_buildings(traj: xr.Dataset, geom, where: str = "") -> None:
+    """Raise if any platform's sampled position lies inside a building."""
+    from simart_pipeline.scene.geometry import inside_buildings
+
+    for p in traj["platform"].values:
+        xyz = traj["position_m"].sel(platform=p).values
+        inside = inside_buildings(geom, xyz[:, 0], xyz[:, 1], xyz[:, 2])
+        if inside.any():
+            i = int(np.argmax(inside))
+            t = int(traj["time"].values[i])
+            raise ValueError(f"{where}: platform {p} is inside a building at t = {t} ns, "
+                             f"position {np.round(xyz[i], 2).tolist()} m: move its waypoints")

@@ -1,0 +1,7 @@
+from simart_pipeline.assets.ckm import ckm_layers
+from simart_pipeline.assets.radio import cirs, kpis
+from simart_pipeline.assets.scene import osm_extract, paired_meshes, trajectory
+from simart_pipeline.assets.sensing import sensor_frames
+from simart_pipeline.assets.session import session
+
+ALL_ASSETS = [osm_extract, paired_meshes, trajectory, sensor_frames, cirs, kpis, ckm_layers, session]

@@ -1,0 +1,231 @@
+"""Pinhole cameras: RGB, z-depth, semantic class and instance id images by ray casting.
+
+Optical frame ``<device>/<sensor>_optical``: z forward, x right, y down (REP 103). Intrinsics from
+the image size and the horizontal field of view, square pixels, OpenCV convention (pixel ``(u, v)``
+has its centre at integer coordinates, the image spans ``-0.5 .. width - 0.5``):
+
+    fx = fy = (width / 2) / tan(hfov / 2),  cx = (width - 1) / 2,  cy = (height - 1) / 2
+
+One ray per pixel centre. ``depth_m`` is the z-depth along the optical axis (the optical-frame z of
+the hit point), not the ray length. The camera sees nothing beyond ``max_depth_m`` (a far clipping
+plane on z-depth): there depth is NaN, the labels are 0 and the pixel shows the sky. Shading:
+:mod:`simart_pipeline.sensing.weather`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import xarray as xr
+from scipy.spatial.transform import Rotation
+
+from simart_pipeline.config import Camera
+from simart_pipeline.scene.meshes import SceneMeshes, SemanticClass
+from simart_pipeline.sensing.raycast import MAX_RAYS_PER_CALL, RayCaster, offset_origins
+from simart_pipeline.sensing.weather import WeatherModel
+
+# Linear albedo per semantic class (r, g, b).
+CLASS_ALBEDO = {
+    SemanticClass.UNLABELED: (0.50, 0.50, 0.50),
+    SemanticClass.GROUND: (0.22, 0.30, 0.14),
+    SemanticClass.ROAD: (0.16, 0.16, 0.17),
+    SemanticClass.BUILDING: (0.55, 0.50, 0.45),
+    SemanticClass.VEGETATION: (0.10, 0.25, 0.08),
+    SemanticClass.WATER: (0.05, 0.10, 0.15),
+    SemanticClass.VEHICLE: (0.50, 0.10, 0.10),
+}
+SHADING_MODEL = ("Lambert: per-class albedo (per-instance tint) x (ambient + sun with ray-cast shadows "
+                 "+ camera lamp cone, inverse square), distance haze, fixed exposure, sRGB 8-bit, "
+                 "rain streaks and Gaussian pixel noise after tone mapping")
+
+
+def intrinsics(cam: Camera) -> np.ndarray:
+    """3x3 camera matrix K (px) of a pinhole camera, OpenCV pixel-centre convention."""
+    f = (cam.width_px / 2) / np.tan(np.deg2rad(cam.horizontal_fov_deg) / 2)
+    return np.array([[f, 0.0, (cam.width_px - 1) / 2],
+                     [0.0, f, (cam.height_px - 1) / 2],
+                     [0.0, 0.0, 1.0]])
+
+
+def pixel_rays(cam: Camera) -> np.ndarray:
+    """[H * W, 3] unit ray directions in the optical frame, row-major (v, u)."""
+    k = intrinsics(cam)
+    v, u = np.meshgrid(np.arange(cam.height_px, dtype=np.float64),
+                       np.arange(cam.width_px, dtype=np.float64), indexing="ij")
+    d = np.stack([(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1], np.ones_like(u)], axis=-1)
+    d = d.reshape(-1, 3)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _mix64(x: np.ndarray) -> np.ndarray:
+    """splitmix64 finaliser: a stable integer hash (numpy uint64, wraps)."""
+    x = np.asarray(x).astype(np.uint64)
+    with np.errstate(over="ignore"):
+        x = (x + np.uint64(0x9E3779B97F4A7C15))
+        x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        x = x ^ (x >> np.uint64(31))
+    return x
+
+
+def face_albedo(meshes: SceneMeshes) -> np.ndarray:
+    """[num_faces, 3] linear albedo: the class albedo times a stable per-instance tint."""
+    table = np.tile(np.asarray(CLASS_ALBEDO[SemanticClass.UNLABELED]), (256, 1))
+    for c, rho in CLASS_ALBEDO.items():
+        table[int(c)] = rho
+    base = table[meshes.face_class.astype(np.int64)]
+    h = _mix64(meshes.face_instance)
+    lum = 0.9 + 0.2 * ((h & np.uint64(0xFFFF)).astype(np.float64) / 0xFFFF)
+    tint = np.stack([0.9 + 0.2 * (((h >> np.uint64(s)) & np.uint64(0xFFFF)).astype(np.float64) / 0xFFFF)
+                     for s in (16, 32, 48)], axis=-1)
+    building = (meshes.face_class == SemanticClass.BUILDING)[:, None]
+    return base * lum[:, None] * np.where(building, tint, 1.0)
+
+
+def srgb_encode(linear: np.ndarray) -> np.ndarray:
+    c = np.clip(linear, 0.0, 1.0)
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055)
+
+
+def _shade(caster: RayCaster, albedo: np.ndarray, origins: np.ndarray, dirs: np.ndarray,
+           cos_axis: np.ndarray, hits, valid: np.ndarray, wx: WeatherModel) -> np.ndarray:
+    """[n, 3] linear radiance of n rays (world ``dirs``), ``valid`` = a surface within range."""
+    n = len(dirs)
+    out = np.empty((n, 3))
+    w = np.clip(dirs[:, 2], 0.0, 1.0)[:, None]
+    sky = np.asarray(wx.sky_horizon_rgb) * (1 - w) + np.asarray(wx.sky_zenith_rgb) * w
+    out[~valid] = sky[~valid]
+    idx = np.flatnonzero(valid)
+    if len(idx) == 0:
+        return out
+    t = hits.t[idx]
+    d = dirs[idx]
+    nrm = hits.normal[idx]
+    facing = np.einsum("ij,ij->i", nrm, d)
+    nrm = nrm * np.where(facing > 0, -1.0, 1.0)[:, None]  # the side the ray sees
+    irr = np.broadcast_to(np.asarray(wx.ambient_rgb, dtype=np.float64), (len(idx), 3)).copy()
+    if wx.has_sun:
+        s = wx.sun_direction_enu()
+        ndots = nrm @ s
+        lit = ndots > 0
+        if lit.any():
+            li = np.flatnonzero(lit)
+            p = origins[idx[li]] + t[li, None] * d[li]
+            sdir = np.broadcast_to(s, (len(li), 3))
+            shadow = caster.occluded(offset_origins(p, nrm[li], sdir), sdir)
+            irr[li] += np.asarray(wx.sun_irradiance_rgb) * (ndots[li] * ~shadow)[:, None]
+    if wx.has_lamp:
+        ca = cos_axis[idx]
+        c_in = np.cos(np.deg2rad(wx.lamp_cone_half_angle_deg))
+        c_out = np.cos(np.deg2rad(wx.lamp_cone_half_angle_deg + wx.lamp_cone_falloff_deg))
+        cone = np.clip((ca - c_out) / max(c_in - c_out, 1e-9), 0.0, 1.0)
+        cos_inc = np.clip(-np.einsum("ij,ij->i", nrm, d), 0.0, 1.0)
+        irr += np.asarray(wx.lamp_intensity_rgb) * (cone * cos_inc / np.maximum(t, 0.1) ** 2)[:, None]
+    rad = albedo[hits.face[idx]] * irr
+    fog = np.exp(-t / wx.visibility_m)[:, None]
+    out[idx] = rad * fog + np.asarray(wx.haze_rgb) * (1 - fog)
+    return out
+
+
+def _rain_streaks(img: np.ndarray, wx: WeatherModel, rng: np.random.Generator) -> None:
+    """Draw the weather's rain streaks into one float image [H, W, 3] in 0..1 (display space)."""
+    h, w = img.shape[:2]
+    count = rng.poisson(wx.rain_streaks_per_mpx * h * w / 1e6)
+    if count == 0 or wx.rain_streak_alpha <= 0:
+        return
+    length = np.maximum(2.0, wx.rain_streak_length_frac * h * rng.uniform(0.6, 1.4, count))
+    slant = np.deg2rad(wx.rain_streak_slant_deg + rng.normal(0.0, 2.0, count))
+    x0 = rng.uniform(0, w, count)
+    y0 = rng.uniform(-0.2 * h, h, count)
+    k = np.arange(int(np.ceil(length.max())))
+    on = k[None, :] < length[:, None]
+    xs = np.rint(x0[:, None] - k[None, :] * np.sin(slant)[:, None]).astype(np.int64)
+    ys = np.rint(y0[:, None] + k[None, :] * np.cos(slant)[:, None]).astype(np.int64)
+    on &= (xs >= 0) & (xs < w) & (ys >= 0) & (ys < h)
+    xs, ys = xs[on], ys[on]
+    streak = srgb_encode(np.asarray(wx.rain_streak_rgb))
+    img[ys, xs] = (1 - wx.rain_streak_alpha) * img[ys, xs] + wx.rain_streak_alpha * streak
+
+
+def render_camera(caster: RayCaster, cam: Camera, times_ns: np.ndarray, position_m: np.ndarray,
+                  rotation: Rotation, wx: WeatherModel, rng: np.random.Generator) -> xr.Dataset:
+    """Render every frame of one camera.
+
+    :param position_m: [n, 3] optical-frame origin in world at each frame instant.
+    :param rotation: n rotations of the optical frame into world.
+    """
+    n_t = len(times_ns)
+    h, w = cam.height_px, cam.width_px
+    d_opt = pixel_rays(cam)
+    cos_axis = d_opt[:, 2]  # cosine between each ray and the optical axis = z-depth per unit length
+    albedo = face_albedo(caster.meshes)
+    face_class, face_inst = caster.meshes.face_class, caster.meshes.face_instance
+    mats = rotation.as_matrix().reshape(n_t, 3, 3)
+    rgb = np.zeros((n_t, h, w, 3), np.uint8)
+    depth = np.full((n_t, h, w), np.nan, np.float32)
+    sem = np.zeros((n_t, h, w), np.uint8)
+    inst = np.zeros((n_t, h, w), np.int64)
+    per_call = max(1, MAX_RAYS_PER_CALL // (h * w))
+    for f0 in range(0, n_t, per_call):
+        f1 = min(n_t, f0 + per_call)
+        b = f1 - f0
+        dirs = np.einsum("fij,pj->fpi", mats[f0:f1], d_opt).reshape(-1, 3)
+        origins = np.repeat(position_m[f0:f1], h * w, axis=0)
+        hits = caster.intersect(origins, dirs)
+        z = hits.t * np.tile(cos_axis, b)
+        valid = hits.hit & (z <= cam.max_depth_m)
+        lin = _shade(caster, albedo, origins, dirs, np.tile(cos_axis, b), hits, valid, wx)
+        face = np.where(valid, hits.face, 0)
+        depth[f0:f1] = np.where(valid, z, np.nan).reshape(b, h, w)
+        sem[f0:f1] = np.where(valid, face_class[face], 0).reshape(b, h, w)
+        inst[f0:f1] = np.where(valid, face_inst[face], 0).reshape(b, h, w)
+        disp = srgb_encode(lin * wx.exposure).reshape(b, h, w, 3)
+        for i in range(b):  # per frame, in time order: the draws do not depend on the batching
+            img = disp[i]
+            _rain_streaks(img, wx, rng)
+            dn = img * 255.0
+            if wx.pixel_noise_std_dn > 0:
+                dn = dn + rng.normal(0.0, wx.pixel_noise_std_dn, dn.shape)
+            rgb[f0 + i] = np.clip(np.rint(dn), 0, 255).astype(np.uint8)
+
+    quat = rotation.as_quat().reshape(n_t, 4)
+    flags = np.array([int(c) for c in SemanticClass], np.uint8)
+    ds = xr.Dataset(
+        {
+            "rgb": (("time", "y", "x", "channel"), rgb,
+                    dict(units="1", long_name="colour image, sRGB-encoded 8-bit",
+                         shading_model=SHADING_MODEL)),
+            "depth_m": (("time", "y", "x"), depth,
+                        dict(units="m", long_name="z-depth of the visible surface along the optical axis",
+                             nan_means="no surface within max_depth_m along the pixel's ray (sky)",
+                             max_depth_m=cam.max_depth_m)),
+            "depth_valid": (("time", "y", "x"), ~np.isnan(depth),
+                            dict(long_name="the pixel sees a surface within max_depth_m "
+                                           "(depth_m, semantic_class and instance_id are defined)")),
+            "semantic_class": (("time", "y", "x"), sem,
+                               dict(units="1", long_name="semantic class of the visible surface",
+                                    flag_values=flags,
+                                    flag_meanings=" ".join(c.name.lower() for c in SemanticClass),
+                                    comment="0 (unlabeled) where no surface is seen: sky or beyond "
+                                            "max_depth_m")),
+            "instance_id": (("time", "y", "x"), inst,
+                            dict(units="1", long_name="source feature id (OSM or generated id) of the "
+                                                      "visible surface",
+                                 comment="0 where no surface is seen; source ids are positive")),
+            "camera_matrix": (("row", "col"), intrinsics(cam),
+                              dict(units="px", long_name="pinhole intrinsics K (OpenCV convention: "
+                                                         "pixel centres at integer coordinates)")),
+            "position_m": (("time", "axis"), position_m.astype(np.float64),
+                           dict(units="m", long_name="optical frame origin in world (ENU)")),
+            "orientation_xyzw": (("time", "quaternion"), quat,
+                                 dict(units="1", long_name="unit quaternion rotating the optical frame "
+                                                           "into world, scalar last")),
+        },
+        coords={"channel": ["r", "g", "b"]},
+    )
+    for name, chunks in (("rgb", (1, h, w, 3)), ("depth_m", (1, h, w)), ("depth_valid", (1, h, w)),
+                         ("semantic_class", (1, h, w)), ("instance_id", (1, h, w))):
+        ds[name].encoding["chunks"] = chunks
+    ds.attrs.update(width_px=w, height_px=h, horizontal_fov_deg=cam.horizontal_fov_deg,
+                    max_depth_m=cam.max_depth_m, projection="pinhole, no lens distortion",
+                    pose_model="pose at the frame instant (global shutter, no motion blur)")
+    return ds

@@ -1,0 +1,90 @@
+"""Clock, frames and the one Zarr writer."""
+
+import os
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from simart_pipeline import clock, frames, stores
+
+
+def test_streams_share_instants_exactly():
+    t10 = clock.sample_times_ns(5.0, 10.0)
+    t2 = clock.sample_times_ns(5.0, 2.0)
+    assert t10.dtype == np.int64 and len(t10) == 51 and len(t2) == 11
+    assert set(t2) <= set(t10)
+    assert t10[-1] == 5 * clock.NS_PER_S
+
+
+def test_rate_without_integer_period_has_no_drift():
+    t = clock.sample_times_ns(100.0, 30.0)
+    # sample i at floor(i * 1e9 / 30): every 30th sample on a whole second, never more than 1 ns off
+    assert np.all(t[::30] == np.arange(0, 101) * clock.NS_PER_S)
+    ideal = np.arange(len(t)) * (1e9 / 30)
+    assert np.max(np.abs(t - ideal)) < 1.0
+    assert np.all(np.diff(t) > 0)
+
+
+def test_enu_geodetic_round_trip_below_a_millimetre():
+    rng = np.random.default_rng(0)
+    enu = rng.uniform(-5000, 5000, size=(100, 3))
+    lla = frames.enu_to_geodetic(enu, 48.1372, 11.5755, 519.0)
+    back = frames.geodetic_to_enu(lla, 48.1372, 11.5755, 519.0)
+    assert np.max(np.abs(back - enu)) < 1e-3
+
+
+def test_optical_frame_convention():
+    # optical z (forward) is body x; optical x (right) is body -y; optical y (down) is body -z
+    m = frames.OPTICAL_TO_BODY.as_matrix()
+    assert np.allclose(m @ [0, 0, 1], [1, 0, 0])
+    assert np.allclose(m @ [1, 0, 0], [0, -1, 0])
+    assert np.allclose(m @ [0, 1, 0], [0, 0, -1])
+
+
+def _ds(value=1.0):
+    return xr.Dataset({"v": (("time", "name"), np.full((3, 2), value), {"units": "m"})},
+                      coords={"time": np.arange(3, dtype=np.int64), "name": ["a", "b"]})
+
+
+def test_store_round_trip_and_overwrite(tmp_path):
+    path = stores.store_path(tmp_path, "cirs", "demo", "sunny")
+    assert path == tmp_path.resolve() / "cirs" / "demo" / "sunny.zarr"
+    stores.write_store(_ds(1.0), path)
+    stores.write_store(_ds(2.0), path)
+    back = stores.open_store(path).load()
+    assert np.all(back["v"].values == 2.0) and list(back["name"].values) == ["a", "b"]
+    assert back["time"].dtype == np.int64
+    assert [p.name for p in path.parent.iterdir()] == ["sunny.zarr"]  # no leftovers
+
+
+def test_failed_write_leaves_last_good_version(tmp_path, monkeypatch):
+    path = tmp_path / "s.zarr"
+    stores.write_store(_ds(1.0), path)
+
+    def boom(*a, **k):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(xr.Dataset, "to_zarr", boom)
+    with pytest.raises(OSError, match="disk full"):
+        stores.write_store(_ds(5.0), path)
+    monkeypatch.undo()
+    assert np.all(stores.open_store(path).load()["v"].values == 1.0)
+    assert sorted(os.listdir(tmp_path)) == ["s.zarr"]
+
+
+def test_non_finite_values_are_refused(tmp_path):
+    with pytest.raises(stores.StoreError, match="inf"):
+        stores.write_store(_ds(np.inf), tmp_path / "a.zarr")
+    with pytest.raises(stores.StoreError, match="nan_means"):
+        stores.write_store(_ds(np.nan), tmp_path / "b.zarr")
+    ok = _ds(np.nan)
+    ok["v"].attrs["nan_means"] = "no path"
+    stores.write_store(ok, tmp_path / "c.zarr")
+    assert not (tmp_path / "a.zarr").exists() and not (tmp_path / "b.zarr").exists()
+
+
+@pytest.mark.parametrize("bad", ["../x", "a/b", "..", "", ".hidden"])
+def test_unsafe_partition_keys_are_refused(tmp_path, bad):
+    with pytest.raises(stores.StoreError, match="unsafe"):
+        stores.store_path(tmp_path, "cirs", "demo", bad)
