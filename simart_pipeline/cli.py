@@ -117,9 +117,19 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
     progress(f"all {total} asset partitions of scene {cfg.name!r} materialised in "
              f"{time.perf_counter() - t_start:.1f} s")
     out: dict[str, list[Path]] = {}
-    for p in sorted(Path(data_root).glob(f"*/{cfg.name}*")):
-        out.setdefault(p.parent.name, []).append(p)
+    for names, key in steps:
+        for name in names:
+            out.setdefault(name, []).append(store_of(name, key, data_root))
     return out
+
+
+def store_of(asset: str, key, data_root: Path) -> Path:
+    from simart_pipeline import stores
+    from simart_pipeline.partitions import split_key
+    from simart_pipeline.resources import DIRECTORY_ASSETS
+
+    scene, sub = split_key(key)
+    return stores.store_path(data_root, asset, scene, sub, suffix="" if asset in DIRECTORY_ASSETS else ".zarr")
 
 
 def cmd_run(args) -> int:

@@ -73,6 +73,17 @@ def _portable_strings(ds: xr.Dataset) -> xr.Dataset:
     return ds.assign_coords(coords).assign(data)
 
 
+def _plain_strings(ds: xr.Dataset) -> xr.Dataset:
+    # zarr reads variable-length strings as numpy StringDType, which many numpy paths (astype(str),
+    # pandas) do not take yet; hand callers ordinary object arrays of str.
+    names = [k for k, v in ds.variables.items() if v.dtype.kind == "T"]
+    if not names:
+        return ds
+    coords = {k: (ds[k].dims, ds[k].values.astype(object), ds[k].attrs) for k in names if k in ds.coords}
+    data = {k: ds[k].variable.astype(object) for k in names if k not in ds.coords}
+    return ds.assign_coords(coords).assign(data)
+
+
 def _replace_atomically(tmp: Path, path: Path) -> None:
     """Swap ``tmp`` into ``path``; the old version stays readable until the final rename."""
     old = None
@@ -128,5 +139,5 @@ def open_store(path: str | Path, tree: bool = False) -> xr.Dataset | xr.DataTree
     if not path.exists():
         raise FileNotFoundError(f"no store at {path}: materialise the upstream asset first")
     if tree:
-        return xr.open_datatree(path, engine="zarr", consolidated=False)
-    return xr.open_zarr(path, consolidated=False)
+        return xr.open_datatree(path, engine="zarr", consolidated=False).map_over_datasets(_plain_strings)
+    return _plain_strings(xr.open_zarr(path, consolidated=False))

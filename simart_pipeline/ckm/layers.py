@@ -50,7 +50,9 @@ def tile_layers(radio: RadioScene | None, cfg: SceneConfig, geom: SourceGeometry
         gain.reshape(B, -1)[flat] = g.T
         los.reshape(B, -1)[flat] = p.los.any(-1).T
         npaths.reshape(B, -1)[flat] = p.valid.sum(-1).T
-        first = np.where(p.valid.any(-1), np.nanmin(np.where(p.valid, p.tau_s, np.inf), -1), np.nan)
+        # initial=inf: a batch in which no cell has any path has zero paths along the last axis.
+        first = np.min(np.where(p.valid, p.tau_s, np.inf), axis=-1, initial=np.inf)
+        first = np.where(np.isfinite(first), first, np.nan)
         toa.reshape(B, -1)[flat] = first.T
     has_path = gain > 0
     with np.errstate(divide="ignore"):

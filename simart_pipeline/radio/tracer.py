@@ -140,7 +140,8 @@ class RadioScene:
                                los=rt_cfg.los, specular_reflection=rt_cfg.specular_reflection,
                                diffuse_reflection=rt_cfg.diffuse_reflection,
                                refraction=rt_cfg.refraction, seed=rt_cfg.seed)
-                chunks.append(_to_numpy(paths, len(tx_positions), len(idx), rt_cfg.max_depth))
+                chunks.append(_to_numpy(paths, len(tx_positions), len(idx), rt_cfg.max_depth,
+                                        self.scene.rx_array.num_ant, self.scene.tx_array.num_ant))
                 for i in idx:
                     self.scene.remove(f"rx{i}")
         finally:
@@ -151,20 +152,22 @@ class RadioScene:
         return _sort(_concat(chunks))
 
 
-def _to_numpy(paths, num_tx: int, num_rx: int, max_depth: int) -> dict[str, np.ndarray]:
+def _to_numpy(paths, num_tx: int, num_rx: int, max_depth: int, rx_ant: int, tx_ant: int) -> dict[str, np.ndarray]:
+    # Explicit shapes: Sionna squeezes nothing, but a call with no path has zero-size arrays.
+    num_paths = np.array(paths.tau).shape[-1]
+    shape = (num_rx, num_tx, num_paths)
     a = np.array(paths.a[0]) + 1j * np.array(paths.a[1])
     out = {
-        "a": a.astype(np.complex64).reshape(num_rx, -1, num_tx, a.shape[3], a.shape[-1]),
-        "tau_s": np.array(paths.tau).astype(np.float64).reshape(num_rx, num_tx, -1),
-        "theta_t": np.array(paths.theta_t).reshape(num_rx, num_tx, -1),
-        "phi_t": np.array(paths.phi_t).reshape(num_rx, num_tx, -1),
-        "theta_r": np.array(paths.theta_r).reshape(num_rx, num_tx, -1),
-        "phi_r": np.array(paths.phi_r).reshape(num_rx, num_tx, -1),
-        "doppler_hz": np.array(paths.doppler).reshape(num_rx, num_tx, -1),
-        "valid": np.array(paths.valid).astype(bool).reshape(num_rx, num_tx, -1),
+        "a": a.astype(np.complex64).reshape(num_rx, rx_ant, num_tx, tx_ant, num_paths),
+        "tau_s": np.array(paths.tau).astype(np.float64).reshape(shape),
+        "theta_t": np.array(paths.theta_t).reshape(shape),
+        "phi_t": np.array(paths.phi_t).reshape(shape),
+        "theta_r": np.array(paths.theta_r).reshape(shape),
+        "phi_r": np.array(paths.phi_r).reshape(shape),
+        "doppler_hz": np.array(paths.doppler).reshape(shape),
+        "valid": np.array(paths.valid).astype(bool).reshape(shape),
     }
     inter = np.array(paths.interactions).astype(np.uint8)
-    num_paths = out["tau_s"].shape[-1]
     inter = inter.reshape(max_depth, num_rx, num_tx, num_paths) if max_depth else \
         np.zeros((0, num_rx, num_tx, num_paths), np.uint8)
     out["interaction"] = np.moveaxis(inter, 0, 2)  # [rx, tx, depth, path]

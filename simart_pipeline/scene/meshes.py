@@ -106,13 +106,18 @@ def build_meshes(geom: SourceGeometry) -> SceneMeshes:
         if extent is not None:
             area = area.intersection(extent)
         roads_area.append((f, area))
-    taken = shapely.union_all(footprints) if footprints else Polygon()
-    for f, area in roads_area:
-        # Each road keeps only what no earlier road or building took: crossings are laid once.
-        own = area.difference(taken)
-        taken = taken.union(area)
+    # Each road keeps only what no building and no earlier road took, so crossings are laid once;
+    # spatial indexes keep this near-linear in the number of roads.
+    road_polys = [a for _, a in roads_area]
+    road_tree = shapely.STRtree(road_polys)
+    foot_tree = shapely.STRtree(footprints)
+    for i, (f, area) in enumerate(roads_area):
+        earlier = [road_polys[j] for j in road_tree.query(area, predicate="intersects") if j < i]
+        blocking = earlier + [footprints[j] for j in foot_tree.query(area, predicate="intersects")]
+        own = area.difference(shapely.union_all(blocking)) if blocking else area
         for poly in _polygons(own):
             parts.append((_flat(poly), SemanticClass.ROAD, f.source_id, "road", f.radio_material))
+    taken = shapely.union_all(footprints + road_polys) if (footprints or road_polys) else Polygon()
     for f in grounds:
         for poly in _polygons(f.geometry.difference(taken)):
             parts.append((_flat(poly), SemanticClass.GROUND, f.source_id, "ground", f.radio_material))

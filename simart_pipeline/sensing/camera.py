@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from simart_pipeline.config import Camera
 from simart_pipeline.scene.meshes import SceneMeshes, SemanticClass
-from simart_pipeline.sensing.raycast import MAX_RAYS_PER_CALL, RayCaster, offset_origins
+from simart_pipeline.sensing.raycast import RayBundle, RayCaster
 from simart_pipeline.sensing.weather import WeatherModel
 
 # Linear albedo per semantic class (r, g, b).
@@ -86,44 +86,62 @@ def srgb_encode(linear: np.ndarray) -> np.ndarray:
     return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055)
 
 
-def _shade(caster: RayCaster, albedo: np.ndarray, origins: np.ndarray, dirs: np.ndarray,
-           cos_axis: np.ndarray, hits, valid: np.ndarray, wx: WeatherModel) -> np.ndarray:
-    """[n, 3] linear radiance of n rays (world ``dirs``), ``valid`` = a surface within range."""
-    n = len(dirs)
-    out = np.empty((n, 3))
-    w = np.clip(dirs[:, 2], 0.0, 1.0)[:, None]
-    sky = np.asarray(wx.sky_horizon_rgb) * (1 - w) + np.asarray(wx.sky_zenith_rgb) * w
-    out[~valid] = sky[~valid]
-    idx = np.flatnonzero(valid)
-    if len(idx) == 0:
-        return out
-    t = hits.t[idx]
-    d = dirs[idx]
-    nrm = hits.normal[idx]
-    facing = np.einsum("ij,ij->i", nrm, d)
-    nrm = nrm * np.where(facing > 0, -1.0, 1.0)[:, None]  # the side the ray sees
-    irr = np.broadcast_to(np.asarray(wx.ambient_rgb, dtype=np.float64), (len(idx), 3)).copy()
-    if wx.has_sun:
-        s = wx.sun_direction_enu()
-        ndots = nrm @ s
-        lit = ndots > 0
-        if lit.any():
-            li = np.flatnonzero(lit)
-            p = origins[idx[li]] + t[li, None] * d[li]
-            sdir = np.broadcast_to(s, (len(li), 3))
-            shadow = caster.occluded(offset_origins(p, nrm[li], sdir), sdir)
-            irr[li] += np.asarray(wx.sun_irradiance_rgb) * (ndots[li] * ~shadow)[:, None]
-    if wx.has_lamp:
-        ca = cos_axis[idx]
-        c_in = np.cos(np.deg2rad(wx.lamp_cone_half_angle_deg))
-        c_out = np.cos(np.deg2rad(wx.lamp_cone_half_angle_deg + wx.lamp_cone_falloff_deg))
-        cone = np.clip((ca - c_out) / max(c_in - c_out, 1e-9), 0.0, 1.0)
-        cos_inc = np.clip(-np.einsum("ij,ij->i", nrm, d), 0.0, 1.0)
-        irr += np.asarray(wx.lamp_intensity_rgb) * (cone * cos_inc / np.maximum(t, 0.1) ** 2)[:, None]
-    rad = albedo[hits.face[idx]] * irr
-    fog = np.exp(-t / wx.visibility_m)[:, None]
-    out[idx] = rad * fog + np.asarray(wx.haze_rgb) * (1 - fog)
-    return out
+class _FrameRenderer:
+    """Renders one camera frame at a time in drjit (ray casting, shading and tone mapping fused).
+
+    Per-frame values (pose) go in as opaque arrays, so every frame reuses the same compiled kernel.
+    """
+
+    def __init__(self, caster: RayCaster, cam: Camera, wx: WeatherModel):
+        import drjit as dr
+        import mitsuba as mi
+
+        self.dr, self.mi, self.caster, self.cam, self.wx = dr, mi, caster, cam, wx
+        self.bundle = RayBundle(caster, pixel_rays(cam))
+        self.normals = mi.Float(np.ascontiguousarray(caster.face_normals, np.float32).ravel())
+        self.albedo = mi.Float(np.ascontiguousarray(face_albedo(caster.meshes), np.float32).ravel())
+        dr.make_opaque(self.normals, self.albedo)
+
+    def render(self, position_m: np.ndarray, rot: np.ndarray):
+        """-> display-space rgb [P, 3] float32 in 0..1, z-depth [P] (inf: none), face [P] (-1: none)."""
+        dr, mi, wx = self.dr, self.mi, self.wx
+        vec = lambda v: mi.Vector3f(*[float(x) for x in v])  # noqa: E731 (weather constants)
+        o, d = self.bundle.world_rays(position_m, rot)
+        do = self.bundle.local  # the rays in the optical frame
+        pi = self.caster.scene.ray_intersect_preliminary(mi.Ray3f(o, d), coherent=True)
+        t = pi.t
+        z = t * do.z  # do.z = cosine between the ray and the optical axis
+        valid = pi.is_valid() & (z <= self.cam.max_depth_m)
+        face = dr.select(valid, pi.prim_index, 0)
+        n = dr.gather(mi.Vector3f, self.normals, face, valid)
+        n = dr.select(dr.dot(n, d) > 0, -n, n)  # the side the ray sees
+        irr = vec(wx.ambient_rgb)
+        if wx.has_sun:
+            s = mi.Vector3f(*[float(x) for x in wx.sun_direction_enu()])
+            ndots = dr.dot(n, s)
+            lit = valid & (ndots > 0)
+            p = o + t * d
+            eps = 1e-3 + 1e-5 * dr.maximum(dr.maximum(dr.abs(p.x), dr.abs(p.y)), dr.abs(p.z))
+            shadow = self.caster.scene.ray_test(mi.Ray3f(p + n * eps, s), active=lit)
+            irr += vec(wx.sun_irradiance_rgb) * dr.select(lit & ~shadow, ndots, 0.0)
+        if wx.has_lamp:
+            c_in = float(np.cos(np.deg2rad(wx.lamp_cone_half_angle_deg)))
+            c_out = float(np.cos(np.deg2rad(wx.lamp_cone_half_angle_deg + wx.lamp_cone_falloff_deg)))
+            cone = dr.clip((do.z - c_out) / max(c_in - c_out, 1e-9), 0.0, 1.0)
+            cos_inc = dr.clip(-dr.dot(n, d), 0.0, 1.0)
+            irr += vec(wx.lamp_intensity_rgb) * (cone * cos_inc / dr.square(dr.maximum(t, 0.1)))
+        rad = dr.gather(mi.Vector3f, self.albedo, face, valid) * irr
+        fog = dr.exp(-dr.select(valid, t, 0.0) / wx.visibility_m)
+        rad = rad * fog + vec(wx.haze_rgb) * (1.0 - fog)
+        w = dr.clip(d.z, 0.0, 1.0)
+        sky = vec(wx.sky_horizon_rgb) * (1.0 - w) + vec(wx.sky_zenith_rgb) * w
+        c = dr.clip(dr.select(valid, rad, sky) * wx.exposure, 0.0, 1.0)
+        c = dr.select(c <= 0.0031308, 12.92 * c, 1.055 * dr.power(c, 1 / 2.4) - 0.055)  # sRGB
+        z = dr.select(valid, z, dr.inf)
+        fid = dr.select(valid, mi.Int32(pi.prim_index), -1)
+        dr.eval(c, z, fid)
+        return (np.array(c, dtype=np.float32).T, np.array(z, dtype=np.float32),
+                np.array(fid, dtype=np.int64))
 
 
 def _rain_streaks(img: np.ndarray, wx: WeatherModel, rng: np.random.Generator) -> None:
@@ -155,37 +173,27 @@ def render_camera(caster: RayCaster, cam: Camera, times_ns: np.ndarray, position
     """
     n_t = len(times_ns)
     h, w = cam.height_px, cam.width_px
-    d_opt = pixel_rays(cam)
-    cos_axis = d_opt[:, 2]  # cosine between each ray and the optical axis = z-depth per unit length
-    albedo = face_albedo(caster.meshes)
+    frame = _FrameRenderer(caster, cam, wx)
     face_class, face_inst = caster.meshes.face_class, caster.meshes.face_instance
     mats = rotation.as_matrix().reshape(n_t, 3, 3)
+    position_m = np.asarray(position_m, np.float64).reshape(n_t, 3)
     rgb = np.zeros((n_t, h, w, 3), np.uint8)
     depth = np.full((n_t, h, w), np.nan, np.float32)
     sem = np.zeros((n_t, h, w), np.uint8)
     inst = np.zeros((n_t, h, w), np.int64)
-    per_call = max(1, MAX_RAYS_PER_CALL // (h * w))
-    for f0 in range(0, n_t, per_call):
-        f1 = min(n_t, f0 + per_call)
-        b = f1 - f0
-        dirs = np.einsum("fij,pj->fpi", mats[f0:f1], d_opt).reshape(-1, 3)
-        origins = np.repeat(position_m[f0:f1], h * w, axis=0)
-        hits = caster.intersect(origins, dirs)
-        z = hits.t * np.tile(cos_axis, b)
-        valid = hits.hit & (z <= cam.max_depth_m)
-        lin = _shade(caster, albedo, origins, dirs, np.tile(cos_axis, b), hits, valid, wx)
-        face = np.where(valid, hits.face, 0)
-        depth[f0:f1] = np.where(valid, z, np.nan).reshape(b, h, w)
-        sem[f0:f1] = np.where(valid, face_class[face], 0).reshape(b, h, w)
-        inst[f0:f1] = np.where(valid, face_inst[face], 0).reshape(b, h, w)
-        disp = srgb_encode(lin * wx.exposure).reshape(b, h, w, 3)
-        for i in range(b):  # per frame, in time order: the draws do not depend on the batching
-            img = disp[i]
-            _rain_streaks(img, wx, rng)
-            dn = img * 255.0
-            if wx.pixel_noise_std_dn > 0:
-                dn = dn + rng.normal(0.0, wx.pixel_noise_std_dn, dn.shape)
-            rgb[f0 + i] = np.clip(np.rint(dn), 0, 255).astype(np.uint8)
+    for i in range(n_t):  # in time order: the noise draws are the same however frames are split
+        disp, z, face = frame.render(position_m[i], mats[i])
+        hit = face >= 0
+        fc = np.where(hit, face, 0)
+        depth[i] = np.where(hit, z, np.nan).reshape(h, w)
+        sem[i] = np.where(hit, face_class[fc], 0).reshape(h, w)
+        inst[i] = np.where(hit, face_inst[fc], 0).reshape(h, w)
+        img = disp.reshape(h, w, 3)
+        _rain_streaks(img, wx, rng)
+        dn = img * np.float32(255.0)
+        if wx.pixel_noise_std_dn > 0:
+            dn += rng.standard_normal(dn.shape, dtype=np.float32) * np.float32(wx.pixel_noise_std_dn)
+        rgb[i] = np.clip(np.rint(dn), 0, 255).astype(np.uint8)
 
     quat = rotation.as_quat().reshape(n_t, 4)
     flags = np.array([int(c) for c in SemanticClass], np.uint8)
@@ -199,7 +207,7 @@ def render_camera(caster: RayCaster, cam: Camera, times_ns: np.ndarray, position
                              nan_means="no surface within max_depth_m along the pixel's ray (sky)",
                              max_depth_m=cam.max_depth_m)),
             "depth_valid": (("time", "y", "x"), ~np.isnan(depth),
-                            dict(long_name="the pixel sees a surface within max_depth_m "
+                            dict(units="1", long_name="the pixel sees a surface within max_depth_m "
                                            "(depth_m, semantic_class and instance_id are defined)")),
             "semantic_class": (("time", "y", "x"), sem,
                                dict(units="1", long_name="semantic class of the visible surface",

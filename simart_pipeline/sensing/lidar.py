@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from simart_pipeline.config import Lidar
 from simart_pipeline.scene.meshes import SemanticClass
-from simart_pipeline.sensing.raycast import MAX_RAYS_PER_CALL, RayCaster
+from simart_pipeline.sensing.raycast import RayBundle, RayCaster
 from simart_pipeline.sensing.weather import WeatherModel
 
 
@@ -53,24 +53,19 @@ def render_lidar(caster: RayCaster, lidar: Lidar, times_ns: np.ndarray, position
     rng_m = np.full((n_t, rings, n_az), np.nan, np.float32)
     sem = np.zeros((n_t, rings, n_az), np.uint8)
     noise_std = lidar.range_noise_std_m * wx.lidar_range_noise_factor
-    per_call = max(1, MAX_RAYS_PER_CALL // (rings * n_az))
-    for f0 in range(0, n_t, per_call):
-        f1 = min(n_t, f0 + per_call)
-        b = f1 - f0
-        dirs = np.einsum("fij,pj->fpi", mats[f0:f1], d_s).reshape(-1, 3)
-        origins = np.repeat(position_m[f0:f1], rings * n_az, axis=0)
-        hits = caster.intersect(origins, dirs)
-        t = hits.t.reshape(b, rings, n_az)
-        face = hits.face.reshape(b, rings, n_az)
-        for i in range(b):  # per sweep, in time order: the draws do not depend on the batching
-            ret = (face[i] >= 0) & (t[i] <= lidar.max_range_m)
-            r = t[i].copy()
-            if noise_std > 0:
-                r = r + rng.normal(0.0, noise_std, r.shape)
-            if wx.lidar_dropout_probability > 0:
-                ret &= rng.random(r.shape) >= wx.lidar_dropout_probability
-            rng_m[f0 + i] = np.where(ret, np.maximum(r, 0.0), np.nan)
-            sem[f0 + i] = np.where(ret, caster.meshes.face_class[np.where(ret, face[i], 0)], 0)
+    bundle = RayBundle(caster, d_s)
+    position_m = np.asarray(position_m, np.float64).reshape(n_t, 3)
+    for i in range(n_t):  # in time order: the noise draws are the same however sweeps are split
+        t, face = bundle.cast(position_m[i], mats[i])
+        t, face = t.reshape(rings, n_az), face.reshape(rings, n_az)
+        ret = (face >= 0) & (t <= lidar.max_range_m)
+        r = t
+        if noise_std > 0:
+            r = t + rng.standard_normal(t.shape, dtype=np.float32) * np.float32(noise_std)
+        if wx.lidar_dropout_probability > 0:
+            ret &= rng.random(t.shape, dtype=np.float32) >= np.float32(wx.lidar_dropout_probability)
+        rng_m[i] = np.where(ret, np.maximum(r, 0.0), np.nan)
+        sem[i] = np.where(ret, caster.meshes.face_class[np.where(ret, face, 0)], 0)
     points = (rng_m[..., None] * d_s.reshape(rings, n_az, 3)[None].astype(np.float32)).astype(np.float32)
     el, az = beam_angles(lidar)
     flags = np.array([int(c) for c in SemanticClass], np.uint8)
@@ -80,7 +75,7 @@ def render_lidar(caster: RayCaster, lidar: Lidar, times_ns: np.ndarray, position
                         dict(units="m", long_name="range of the beam's return (with range noise)",
                              nan_means="no return: nothing within max_range_m, or dropped by the weather")),
             "valid": (("time", "ring", "azimuth"), ~np.isnan(rng_m),
-                      dict(long_name="the beam returned (range_m, points_m and semantic_class defined)")),
+                      dict(units="1", long_name="the beam returned (range_m, points_m and semantic_class defined)")),
             "points_m": (("time", "ring", "azimuth", "axis"), points,
                          dict(units="m", long_name="return point in the sensor frame (x fwd, y left, z up)",
                               nan_means="no return (see range_m)")),

@@ -5,8 +5,14 @@ primitive index of a hit is the face index of :class:`SceneMeshes.visual` and in
 ``face_class`` / ``face_instance`` directly. The variant is whatever :func:`engine.init` selected
 (the one Sionna RT uses); this module never sets a variant.
 
-Rays go to Mitsuba as whole batches (a frame or several at once) of drjit arrays; results come
-back as numpy arrays. Normals are the mesh's flat face normals, looked up by face index.
+Two ways in:
+
+- :class:`RayBundle`: a sensor's fixed ray directions (a camera's pixels, a LiDAR's beams) kept in
+  drjit and cast frame after frame from a pose; the pose enters as opaque values so every frame
+  reuses one compiled kernel (the camera fuses its shading into the same kernel).
+- :meth:`RayCaster.intersect` / :meth:`RayCaster.occluded`: arbitrary numpy rays in batches.
+
+Normals are the mesh's flat face normals, looked up by face index.
 """
 
 from __future__ import annotations
@@ -58,34 +64,38 @@ class RayCaster:
     def __init__(self, meshes: SceneMeshes):
         self.meshes = meshes
         self.scene = build_scene(meshes)
-        normals = np.asarray(meshes.visual.face_normals, dtype=np.float64)
-        self.face_normals = normals
+        self.face_normals = np.asarray(meshes.visual.face_normals, dtype=np.float64)
 
     @staticmethod
-    def _ray(origins: np.ndarray, dirs: np.ndarray, max_t: np.ndarray | float | None = None):
+    def _ray(origins: np.ndarray, dirs: np.ndarray, max_t: np.ndarray | None = None):
         import mitsuba as mi
 
-        o = np.ascontiguousarray(origins, dtype=np.float32)
-        d = np.ascontiguousarray(dirs, dtype=np.float32)
-        ray = mi.Ray3f(mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
+        o = np.ascontiguousarray(np.asarray(origins, np.float32).T)
+        d = np.ascontiguousarray(np.asarray(dirs, np.float32).T)
+        ray = mi.Ray3f(mi.Point3f(o[0], o[1], o[2]), mi.Vector3f(d[0], d[1], d[2]))
         if max_t is not None:
-            ray.maxt = mi.Float(np.broadcast_to(np.asarray(max_t, np.float32), (len(o),)).copy())
+            ray.maxt = mi.Float(np.ascontiguousarray(max_t, np.float32))
         return ray
 
+    def _batches(self, origins, dirs, max_t=None):
+        dirs = np.asarray(dirs, np.float64).reshape(-1, 3)
+        origins = np.broadcast_to(np.asarray(origins, np.float64), dirs.shape)
+        if max_t is not None:
+            max_t = np.broadcast_to(np.asarray(max_t, np.float64), (len(dirs),))
+        for s in range(0, len(dirs), MAX_RAYS_PER_CALL):
+            e = min(len(dirs), s + MAX_RAYS_PER_CALL)
+            yield s, e, self._ray(origins[s:e], dirs[s:e], None if max_t is None else max_t[s:e])
+
     def intersect(self, origins: np.ndarray, dirs: np.ndarray) -> Hits:
-        """Closest hit of each ray; ``origins`` and ``dirs`` [n, 3] in world (dirs unit length)."""
-        origins = np.broadcast_to(np.asarray(origins, np.float64), np.shape(dirs))
-        n = len(dirs)
+        """Closest hit of each ray; ``origins`` [n, 3] or [3], ``dirs`` [n, 3] unit, world frame."""
+        n = len(np.reshape(dirs, (-1, 3)))
         t = np.full(n, np.inf)
         face = np.full(n, -1, np.int64)
-        for s in range(0, n, MAX_RAYS_PER_CALL):
-            e = min(n, s + MAX_RAYS_PER_CALL)
-            pi = self.scene.ray_intersect_preliminary(self._ray(origins[s:e], dirs[s:e]), coherent=True)
+        for s, e, ray in self._batches(origins, dirs):
+            pi = self.scene.ray_intersect_preliminary(ray, coherent=True)
             valid = np.array(pi.is_valid(), dtype=bool)
-            tt = np.array(pi.t, dtype=np.float64)
-            prim = np.array(pi.prim_index, dtype=np.int64)
-            t[s:e] = np.where(valid, tt, np.inf)
-            face[s:e] = np.where(valid, prim, -1)
+            t[s:e] = np.where(valid, np.array(pi.t, dtype=np.float64), np.inf)
+            face[s:e] = np.where(valid, np.array(pi.prim_index, dtype=np.int64), -1)
         normal = np.zeros((n, 3))
         hit = face >= 0
         normal[hit] = self.face_normals[face[hit]]
@@ -93,20 +103,45 @@ class RayCaster:
 
     def occluded(self, origins: np.ndarray, dirs: np.ndarray, max_t: float | np.ndarray | None = None
                  ) -> np.ndarray:
-        """[n] bool: something lies on each ray before ``max_t`` (shadow rays)."""
-        origins = np.broadcast_to(np.asarray(origins, np.float64), np.shape(dirs))
-        n = len(dirs)
+        """[n] bool: a surface lies on each ray closer than ``max_t`` (m; none: any distance)."""
+        n = len(np.reshape(dirs, (-1, 3)))
         out = np.zeros(n, bool)
-        for s in range(0, n, MAX_RAYS_PER_CALL):
-            e = min(n, s + MAX_RAYS_PER_CALL)
-            mt = None if max_t is None or np.isscalar(max_t) and not np.isfinite(max_t) else (
-                max_t if np.isscalar(max_t) else np.asarray(max_t)[s:e])
-            out[s:e] = np.array(self.scene.ray_test(self._ray(origins[s:e], dirs[s:e], mt)), dtype=bool)
+        for s, e, ray in self._batches(origins, dirs, max_t):
+            out[s:e] = np.array(self.scene.ray_test(ray), dtype=bool)
         return out
 
 
-def offset_origins(points: np.ndarray, normals: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-    """Push surface points off their surface (on the side ``dirs`` leave to) against self-hits."""
-    side = np.sign(np.einsum("ij,ij->i", normals, dirs))[:, None]
-    eps = 1e-3 + 1e-5 * np.abs(points).max(axis=1, keepdims=True)
-    return points + normals * side * eps
+class RayBundle:
+    """A fixed set of unit ray directions in a sensor frame, kept as drjit arrays.
+
+    :meth:`cast` rotates them by a pose given as opaque drjit values, so casting the bundle from
+    frame after frame reuses one compiled kernel.
+    """
+
+    def __init__(self, caster: "RayCaster", local_dirs: np.ndarray):
+        import drjit as dr
+        import mitsuba as mi
+
+        self.caster, self.dr, self.mi = caster, dr, mi
+        d = np.asarray(local_dirs, np.float32).reshape(-1, 3)
+        self.local = mi.Vector3f(*[mi.Float(np.ascontiguousarray(d[:, k])) for k in range(3)])
+        dr.make_opaque(self.local)
+
+    def world_rays(self, position_m: np.ndarray, rotation_matrix: np.ndarray):
+        """(origin Point3f, direction Vector3f) of the bundle from a pose (sensor into world)."""
+        dr, mi = self.dr, self.mi
+        o = mi.Point3f(*[dr.opaque(mi.Float, float(x)) for x in np.ravel(position_m)])
+        r = [[dr.opaque(mi.Float, float(rotation_matrix[i, j])) for j in range(3)] for i in range(3)]
+        lo = self.local
+        return o, mi.Vector3f(*[r[i][0] * lo.x + r[i][1] * lo.y + r[i][2] * lo.z for i in range(3)])
+
+    def cast(self, position_m: np.ndarray, rotation_matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """-> (t [n] float32 m, inf where no hit; face [n] int64, -1 where no hit)."""
+        dr, mi = self.dr, self.mi
+        o, d = self.world_rays(position_m, rotation_matrix)
+        pi = self.caster.scene.ray_intersect_preliminary(mi.Ray3f(o, d), coherent=True)
+        valid = pi.is_valid()
+        t = dr.select(valid, pi.t, dr.inf)
+        face = dr.select(valid, mi.Int32(pi.prim_index), -1)
+        dr.eval(t, face)
+        return np.array(t, dtype=np.float32), np.array(face, dtype=np.int64)
