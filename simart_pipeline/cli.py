@@ -163,7 +163,8 @@ def cmd_run(args) -> int:
 def cmd_dev(args) -> int:
     home = _prepare_dagster_home()
     print(f"DAGSTER_HOME={home}")
-    cmd = [sys.executable, "-m", "dagster", "dev", "-m", "simart_pipeline.definitions", *args.dagster_args]
+    extra = args.dagster_args[1:] if args.dagster_args[:1] == ["--"] else args.dagster_args
+    cmd = [sys.executable, "-m", "dagster", "dev", "-m", "simart_pipeline.definitions", *extra]
     return subprocess.call(cmd, cwd=registry.REPO_ROOT)
 
 
