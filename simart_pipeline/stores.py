@@ -129,7 +129,6 @@ def write_store(obj: xr.Dataset | xr.DataTree, path: str | Path) -> Path:
             else:
                 _portable_strings(obj).to_zarr(tmp, mode="w", zarr_format=3, consolidated=False)
 
-    shutil.rmtree(path.with_name(f".{path.name}.tmp"), ignore_errors=True)
     return write_directory(path, fill)
 
 

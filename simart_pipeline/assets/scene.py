@@ -33,8 +33,7 @@ def paired_meshes(context: dg.AssetExecutionContext, project: ProjectResource,
     cfg = project.config(scene)
     t0 = time.perf_counter()
     m = meshes.build_meshes(geometry.from_dataset(osm_extract.load()))
-    info = {k: v for k, v in provenance.attrs(cfg, "paired_meshes").items()}
-    info["carrier_frequency_hz"] = cfg.ofdm.carrier_frequency_hz
+    info = provenance.attrs(cfg, "paired_meshes", carrier_frequency_hz=cfg.ofdm.carrier_frequency_hz)
     counts = m.counts()
     return dg.Output(meshes.PairedMeshesOutput(m, info, cfg.materials.thickness_m),
                      metadata={**{k: v for k, v in counts.items() if k != "radio_materials"},
