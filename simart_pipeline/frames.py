@@ -35,6 +35,17 @@ def rotation_from_rpy_deg(rpy_deg) -> Rotation:
     return Rotation.from_euler("xyz", np.asarray(rpy_deg, dtype=float), degrees=True)
 
 
+def rotation_from_sionna_orientation(yaw_pitch_roll, degrees: bool = False) -> Rotation:
+    """Sionna RT orientation ``[..., 3] = (yaw about z, pitch about y, roll about x)`` as the
+    rotation of the device's own frame into world, ``R = Rz(yaw) Ry(pitch) Rx(roll)``."""
+    return Rotation.from_euler("ZYX", np.asarray(yaw_pitch_roll, dtype=np.float64), degrees=degrees)
+
+
+def sionna_orientation(rotation: Rotation) -> np.ndarray:
+    """Inverse of :func:`rotation_from_sionna_orientation`: ``[..., 3]`` (yaw, pitch, roll), rad."""
+    return rotation.as_euler("ZYX")
+
+
 def enu_to_geodetic(enu_m: np.ndarray, lat0_deg: float, lon0_deg: float, alt0_m: float) -> np.ndarray:
     """``[..., 3]`` ENU (m) around the origin to ``[..., 3]`` (lat deg, lon deg, alt m) on WGS84."""
     e, n, u = np.moveaxis(np.asarray(enu_m, dtype=np.float64), -1, 0)

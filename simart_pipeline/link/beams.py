@@ -15,7 +15,7 @@ without conjugation.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+from simart_pipeline import frames
 
 
 def _axis_grid(num_elements: int, spacing_wavelengths: float, oversampling: int) -> np.ndarray:
@@ -114,7 +114,7 @@ def rotation_local_to_world(orientation_rad) -> np.ndarray:
     frame. Returns ``[..., 3, 3]``.
     """
     ori = np.asarray(orientation_rad, dtype=np.float64)
-    mats = Rotation.from_euler("ZYX", ori.reshape(-1, 3)).as_matrix()  # intrinsic z-y'-x''
+    mats = frames.rotation_from_sionna_orientation(ori.reshape(-1, 3)).as_matrix()
     return mats.reshape(ori.shape[:-1] + (3, 3))
 
 

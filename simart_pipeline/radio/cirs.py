@@ -11,18 +11,13 @@ import numpy as np
 import xarray as xr
 from scipy.spatial.transform import Rotation
 
-from simart_pipeline import clock
+from simart_pipeline import clock, frames
 from simart_pipeline.config import SceneConfig
 from simart_pipeline.mobility.trajectory import poses_at
 from simart_pipeline.radio.tracer import RX_NEAR_TX_M, RadioScene
 from simart_pipeline.scene.geometry import SourceGeometry, inside_buildings
 
 INTERACTION_FLAGS = {"none": 0, "specular": 1, "diffuse": 2, "refraction": 4, "diffraction": 8}
-
-
-def _yaw_pitch_roll(quat_xyzw: np.ndarray) -> np.ndarray:
-    """Sionna orientation (yaw about z, pitch about y, roll about x) from quaternions [n, 4]."""
-    return Rotation.from_quat(quat_xyzw).as_euler("ZYX")
 
 
 def trace_trajectory(radio: RadioScene, cfg: SceneConfig, traj: xr.Dataset,
@@ -37,7 +32,7 @@ def trace_trajectory(radio: RadioScene, cfg: SceneConfig, traj: xr.Dataset,
     for j, p in enumerate(plats):
         poses = poses_at(traj, p.name, t_ns)
         pos[:, j], vel[:, j] = poses["position_m"], poses["velocity_mps"]
-        ori[:, j] = _yaw_pitch_roll(poses["orientation_xyzw"])
+        ori[:, j] = frames.sionna_orientation(Rotation.from_quat(poses["orientation_xyzw"]))
     tx_pos = np.array([b.position_m for b in bss], dtype=np.float64)
     tx_ori = np.deg2rad(np.array([b.orientation_deg for b in bss], dtype=np.float64))
     paths = radio.trace(tx_pos, tx_ori, pos.reshape(-1, 3), vel.reshape(-1, 3), ori.reshape(-1, 3))

@@ -41,6 +41,12 @@ class SemanticClass(IntEnum):
     VEHICLE = 6
 
 
+def semantic_flag_attrs() -> dict:
+    """CF ``flag_values`` / ``flag_meanings`` of :class:`SemanticClass`, for every label variable."""
+    return {"flag_values": np.array([int(c) for c in SemanticClass], np.uint8),
+            "flag_meanings": " ".join(c.name.lower() for c in SemanticClass)}
+
+
 _CLASS_OF_FEATURE = {"building": SemanticClass.BUILDING, "road": SemanticClass.ROAD,
                      "ground": SemanticClass.GROUND}
 
@@ -167,9 +173,7 @@ def save(meshes: SceneMeshes, out: Path, scene_info: dict, thickness_m: float) -
     meshes.visual.export(out / "visual" / "visual.ply", encoding="binary")
     labels = xr.Dataset({
         "semantic_class": ("face", meshes.face_class,
-                           {"long_name": "semantic class of each visual face",
-                            "flag_values": np.array([int(c) for c in SemanticClass], np.uint8),
-                            "flag_meanings": " ".join(c.name.lower() for c in SemanticClass)}),
+                           {"long_name": "semantic class of each visual face", **semantic_flag_attrs()}),
         "instance_id": ("face", meshes.face_instance,
                         {"long_name": "source feature id (OSM id) of each visual face"}),
     })

@@ -19,7 +19,7 @@ import xarray as xr
 from scipy.spatial.transform import Rotation
 
 from simart_pipeline.config import Camera
-from simart_pipeline.scene.meshes import SceneMeshes, SemanticClass
+from simart_pipeline.scene.meshes import SceneMeshes, SemanticClass, semantic_flag_attrs
 from simart_pipeline.sensing.raycast import RayBundle, RayCaster
 from simart_pipeline.sensing.weather import WeatherModel
 
@@ -196,7 +196,6 @@ def render_camera(caster: RayCaster, cam: Camera, times_ns: np.ndarray, position
         rgb[i] = np.clip(np.rint(dn), 0, 255).astype(np.uint8)
 
     quat = rotation.as_quat().reshape(n_t, 4)
-    flags = np.array([int(c) for c in SemanticClass], np.uint8)
     ds = xr.Dataset(
         {
             "rgb": (("time", "y", "x", "channel"), rgb,
@@ -211,8 +210,7 @@ def render_camera(caster: RayCaster, cam: Camera, times_ns: np.ndarray, position
                                            "(depth_m, semantic_class and instance_id are defined)")),
             "semantic_class": (("time", "y", "x"), sem,
                                dict(units="1", long_name="semantic class of the visible surface",
-                                    flag_values=flags,
-                                    flag_meanings=" ".join(c.name.lower() for c in SemanticClass),
+                                    **semantic_flag_attrs(),
                                     comment="0 (unlabeled) where no surface is seen: sky or beyond "
                                             "max_depth_m")),
             "instance_id": (("time", "y", "x"), inst,

@@ -19,7 +19,7 @@ import xarray as xr
 from scipy.spatial.transform import Rotation
 
 from simart_pipeline.config import Lidar
-from simart_pipeline.scene.meshes import SemanticClass
+from simart_pipeline.scene.meshes import semantic_flag_attrs
 from simart_pipeline.sensing.raycast import RayBundle, RayCaster
 from simart_pipeline.sensing.weather import WeatherModel
 
@@ -68,7 +68,6 @@ def render_lidar(caster: RayCaster, lidar: Lidar, times_ns: np.ndarray, position
         sem[i] = np.where(ret, caster.meshes.face_class[np.where(ret, face, 0)], 0)
     points = (rng_m[..., None] * d_s.reshape(rings, n_az, 3)[None].astype(np.float32)).astype(np.float32)
     el, az = beam_angles(lidar)
-    flags = np.array([int(c) for c in SemanticClass], np.uint8)
     ds = xr.Dataset(
         {
             "range_m": (("time", "ring", "azimuth"), rng_m,
@@ -81,8 +80,7 @@ def render_lidar(caster: RayCaster, lidar: Lidar, times_ns: np.ndarray, position
                               nan_means="no return (see range_m)")),
             "semantic_class": (("time", "ring", "azimuth"), sem,
                                dict(units="1", long_name="semantic class of the surface hit",
-                                    flag_values=flags,
-                                    flag_meanings=" ".join(c.name.lower() for c in SemanticClass),
+                                    **semantic_flag_attrs(),
                                     comment="0 (unlabeled) where there is no return")),
             "position_m": (("time", "axis"), position_m.astype(np.float64),
                            dict(units="m", long_name="sensor frame origin in world (ENU) at the sweep")),

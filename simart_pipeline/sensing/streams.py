@@ -49,7 +49,7 @@ def stream_rng(seed: int, device: str, sensor: str, weather: str) -> np.random.G
 
 def base_station_rotation(bs: BaseStation) -> Rotation:
     """Rotation of a base station's base_link into world (Sionna yaw, pitch, roll)."""
-    return Rotation.from_euler("ZYX", np.asarray(bs.orientation_deg, np.float64), degrees=True)
+    return frames.rotation_from_sionna_orientation(bs.orientation_deg, degrees=True)
 
 
 def device_poses(device: Platform | BaseStation, traj: xr.Dataset | None, times_ns: np.ndarray
