@@ -1,5 +1,6 @@
 from simart_pipeline.assets.ckm import ckm_layers
-from simart_pipeline.assets.radio import cirs, kpis
+from simart_pipeline.assets.link import kpis
+from simart_pipeline.assets.radio import cirs
 from simart_pipeline.assets.scene import osm_extract, paired_meshes, trajectory
 from simart_pipeline.assets.sensing import sensor_frames
 from simart_pipeline.assets.session import session
