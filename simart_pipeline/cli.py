@@ -1,4 +1,4 @@
-"""``simart``: run a scene end to end, validate it, list scenes, open the Dagster UI."""
+"""``simart``: run a scene end to end, validate it, list scenes, build a scene, open the Dagster UI."""
 
 from __future__ import annotations
 
@@ -99,6 +99,7 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
     steps += [(["sensor_frames", "cirs", "kpis", "session"], dg.MultiPartitionKey({"scene": cfg.name, "weather": w}))
               for w in weathers]
     steps += [(["ckm_layers"], dg.MultiPartitionKey({"scene": cfg.name, "tile": t})) for t in tiles]
+    steps += [(["ckm_map"], cfg.name)]
     total = sum(len(s[0]) for s in steps)
     done = 0
     t_start = time.perf_counter()
@@ -119,7 +120,11 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
     out: dict[str, list[Path]] = {}
     for names, key in steps:
         for name in names:
-            out.setdefault(name, []).append(store_of(name, key, data_root))
+            if name not in ("ckm_layers", "ckm_map"):  # the tiles write into the scene's mosaic maps
+                out.setdefault(name, []).append(store_of(name, key, data_root))
+    from simart_pipeline.ckm.maps import map_groups, map_path
+
+    out["ckm"] = [map_path(data_root, cfg.name, name) for name in map_groups(cfg)]
     return out
 
 
@@ -179,6 +184,87 @@ def cmd_preflight(args) -> int:
         return 3
 
 
+def _floats(text: str, n: tuple[int, ...], what: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{what}: {text!r} is not a comma-separated list of numbers") from None
+    if len(values) not in n:
+        raise argparse.ArgumentTypeError(f"{what}: expected {' or '.join(map(str, n))} numbers, got {len(values)}")
+    return values
+
+
+def _origin(text: str) -> tuple[float, float, float]:
+    v = _floats(text, (2, 3), "--origin LAT,LON[,ALT_M]")
+    if not (-90 <= v[0] <= 90 and -180 <= v[1] <= 180):
+        raise argparse.ArgumentTypeError(f"--origin: latitude {v[0]} or longitude {v[1]} out of range")
+    return (v[0], v[1], v[2] if len(v) == 3 else 0.0)
+
+
+def _bbox(text: str) -> tuple[float, float, float, float]:
+    v = _floats(text, (4,), "--bbox MIN_LON,MIN_LAT,MAX_LON,MAX_LAT")
+    if not (-180 <= v[0] < v[2] <= 180 and -90 <= v[1] < v[3] <= 90):
+        raise argparse.ArgumentTypeError(f"--bbox {text}: expected MIN_LON < MAX_LON and MIN_LAT < MAX_LAT, in degrees")
+    return v
+
+
+def cmd_scene_build(args) -> int:
+    from simart_pipeline.scene.build import build_scene
+
+    t0 = time.perf_counter()
+    try:
+        info = build_scene(args.source, args.out, origin=args.origin, bbox_deg=args.bbox, force=args.force,
+                           frequency_hz=args.carrier_frequency_hz, storey_height_m=args.storey_height_m,
+                           facade_detail=not args.no_facade_detail)
+    except (ValueError, OSError) as exc:  # the builders' errors name the file and the problem
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    c = info["counts"]
+    origin = info.get("origin")
+    where = (f"origin {origin['latitude_deg']:.7f}, {origin['longitude_deg']:.7f}" if origin else "no geodetic origin")
+    print(f"{args.out}: {c['buildings']} buildings, visual {c['visual_triangles']} triangles, radio "
+          f"{c['radio_triangles']} triangles in {c['radio_meshes']} meshes ({', '.join(c['radio_materials'])}); "
+          f"{where}; {len(info.get('warnings', []))} warning(s); {time.perf_counter() - t0:.2f} s")
+    if info.get("attribution"):
+        print(info["attribution"])
+    return 0
+
+
+def cmd_ckm(args) -> int:
+    """Open a scene's channel knowledge map as an xarray dataset: print it, or export it."""
+    from simart_pipeline import registry as reg
+    from simart_pipeline.ckm.maps import open_scene_map
+    from simart_pipeline.config import ConfigError, load_scene_config
+
+    data_root = Path(args.data or reg.default_data_root()).resolve()
+    try:
+        scene_dir = Path(args.scene) if Path(args.scene, "scene.yaml").is_file() else \
+            reg.scene_dir(args.scene, data_root, reg.default_scenes_root())
+        cfg = load_scene_config(scene_dir)
+        ds = open_scene_map(data_root, cfg, args.weather)
+    except (ConfigError, FileNotFoundError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    if args.layer:
+        missing = [v for v in args.layer if v not in ds.data_vars]
+        if missing:
+            print(f"error: no layer {', '.join(missing)}; layers: {', '.join(sorted(ds.data_vars))}", file=sys.stderr)
+            return 1
+        ds = ds[list(args.layer)]
+    if args.export:
+        from simart_pipeline import stores as zarr_stores
+
+        out = Path(args.export)
+        if out.suffix != ".zarr":
+            print(f"error: --export {out}: give a .zarr path (a standalone copy of the map)", file=sys.stderr)
+            return 1
+        zarr_stores.write_store(ds.load(), out)
+        print(f"wrote {out}")
+        return 0
+    print(ds)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="simart",
@@ -208,6 +294,37 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Run `dagster dev` with DAGSTER_HOME=.dagster_home; extra arguments go to dagster.")
     d.add_argument("dagster_args", nargs=argparse.REMAINDER)
     d.set_defaults(func=cmd_dev)
+    sc = sub.add_parser("scene", help="build scenes from OpenStreetMap extracts or meshes",
+                        description="Scene construction commands.")
+    scs = sc.add_subparsers(dest="scene_command", required=True)
+    b = scs.add_parser(
+        "build", help="an OSM extract or a mesh to paired visual and radio meshes",
+        description="Build DIR/radio/scene.xml (+ PLY meshes, loadable by sionna.rt.load_scene), the visual mesh "
+                    "with per-face semantic class and instance id under DIR/visual/, and DIR/scene.json (origin, "
+                    "counts, materials, attribution). SOURCE is an OSM extract (.osm, .osm.pbf) or a mesh "
+                    "(.obj, .ply, .stl, .gltf, .glb). DIR is written aside and renamed into place.")
+    b.add_argument("source", metavar="SOURCE")
+    b.add_argument("--out", metavar="DIR", required=True, help="output directory (must be empty or absent)")
+    b.add_argument("--origin", metavar="LAT,LON[,ALT_M]", type=_origin,
+                   help="world origin (WGS84); default: the extract's centre at altitude 0")
+    b.add_argument("--bbox", metavar="MIN_LON,MIN_LAT,MAX_LON,MAX_LAT", type=_bbox,
+                   help="clip an OSM extract to this box (deg); default: the whole extract")
+    b.add_argument("--force", action="store_true", help="replace a non-empty DIR")
+    b.add_argument("--carrier-frequency-hz", type=float, default=3.5e9, metavar="HZ",
+                   help="frequency at which non-ITU radio materials (water) are written (default 3.5e9)")
+    b.add_argument("--storey-height-m", type=float, default=3.0, metavar="M",
+                   help="storey height for building:levels and window rows (default 3)")
+    b.add_argument("--no-facade-detail", action="store_true", help="no window frames on the visual mesh")
+    b.set_defaults(func=cmd_scene_build)
+    k = sub.add_parser("ckm", help="show a scene's channel knowledge map (xarray) or export a copy",
+                       description="Open the mosaic CKM store of a materialised scene as an xarray dataset. "
+                                   "In Python: simart_pipeline.ckm.maps.open_scene_map(data_root, cfg, weather).")
+    k.add_argument("scene", help="scene name (registered by `simart run`) or scene directory")
+    k.add_argument("--weather", help="whose radio materials (default: the first mapped weather)")
+    k.add_argument("--layer", nargs="+", help="only these layers")
+    k.add_argument("--export", metavar="OUT.zarr", help="write the map (or the chosen layers) to a standalone Zarr store")
+    k.add_argument("--data", help="data root (default data/ or $SIMART_DATA)")
+    k.set_defaults(func=cmd_ckm)
     f = sub.add_parser("preflight", help="check that Sionna RT can run here (libLLVM >= 17 or CUDA)",
                        description="Report the ray-tracing backend, or what is missing and how to fix it.")
     f.set_defaults(func=cmd_preflight)

@@ -15,14 +15,12 @@ from pathlib import Path
 from typing import Annotated, Literal, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, field_validator,
+                      model_validator)
+
+from simart_pipeline.radio.materials import RADIO_MATERIALS
 
 WEATHERS = ("sunny", "rainy", "night")
-# ITU-R P.2040 materials that Sionna RT's ITURadioMaterial knows.
-ITU_MATERIALS = (
-    "vacuum", "concrete", "brick", "plasterboard", "wood", "glass", "ceiling_board", "chipboard",
-    "plywood", "marble", "floorboard", "metal", "very_dry_ground", "medium_dry_ground", "wet_ground",
-)
 MAX_TILES_PER_AXIS = 4  # the static tile partitions are r0c0 .. r3c3 (partitions/__init__.py)
 
 
@@ -78,6 +76,104 @@ class OsmSource(_Model):
         None, description="min_lon, min_lat, max_lon, max_lat; whole extract when absent")
     default_building_height_m: float = Field(10.0, gt=0)
     storey_height_m: float = Field(3.0, gt=0)
+    facade_detail: bool = Field(True, description="window frames on the visual mesh's facades")
+
+    @field_validator("path")
+    @classmethod
+    def _inside_scene_dir(cls, v):
+        p = Path(v)
+        if p.is_absolute() or ".." in p.parts:
+            raise ValueError(f"{v!r}: the extract must lie inside the scene directory "
+                             "(a relative path without '..')")
+        return v
+
+    @field_validator("bbox_deg")
+    @classmethod
+    def _bbox_ordered(cls, v):
+        if v is not None and not (-180 <= v[0] < v[2] <= 180 and -90 <= v[1] < v[3] <= 90):
+            raise ValueError("expected min_lon < max_lon and min_lat < max_lat, in degrees")
+        return v
+
+
+class MeshPartRule(_Model):
+    """How the parts that ``match`` are labelled and simplified (``docs/user-meshes.md``).
+
+    ``match`` is a case-insensitive glob (``window_frame*``) or, prefixed ``re:``, a regular
+    expression (full match), tried against a part's node name, node path (``Room/Desk``), mesh
+    name, visual material name and tags. For each field, the first matching rule that sets it wins.
+    """
+
+    match: str = Field(min_length=1)
+    semantic_class: str | None = None
+    radio_material: str | None = None
+    drop: bool | None = Field(None, description="remove from the radio mesh (the visual mesh keeps it)")
+    keep: bool | None = Field(None, description="never removed by the size threshold")
+
+    @field_validator("match")
+    @classmethod
+    def _pattern(cls, v):
+        if v.startswith("re:"):
+            import re
+
+            try:
+                re.compile(v[3:])
+            except re.error as exc:
+                raise ValueError(f"not a valid regular expression: {exc}") from None
+        return v
+
+    @model_validator(mode="after")
+    def _known_names(self):
+        check_mesh_labels(self.semantic_class, self.radio_material)
+        return self
+
+
+def check_mesh_labels(semantic_class: str | None = None, radio_material: str | None = None) -> None:
+    """Raise ValueError for a semantic class or radio material the project does not know."""
+    # Imported here: scene.meshes imports this module, a cycle at import time.
+    from simart_pipeline.radio.materials import RADIO_MATERIALS
+    from simart_pipeline.scene.meshes import SemanticClass
+
+    names = [c.name.lower() for c in SemanticClass]
+    if semantic_class is not None and semantic_class not in names:
+        raise ValueError(f"unknown semantic class {semantic_class!r}; known: {', '.join(names)}")
+    if radio_material is not None and radio_material not in RADIO_MATERIALS:
+        raise ValueError(f"unknown radio material {radio_material!r}; known: {', '.join(RADIO_MATERIALS)}")
+
+
+class MeshImportRules(_Model):
+    """Import, labelling and simplification of a user mesh into paired visual and radio meshes."""
+
+    up_axis: Literal["auto", "y", "z"] = Field(
+        "auto", description="the file's up axis; auto: y for glTF/GLB (the glTF spec), z otherwise")
+    scale_m_per_unit: float = Field(1.0, gt=0, description="metres per file unit (glTF is metres)")
+    parts: tuple[MeshPartRule, ...] = ()
+    default_semantic_class: str = "building"
+    default_radio_material: str = "concrete"
+    min_part_extent_m: float = Field(
+        1.0, ge=0, description="connected parts whose bounding box is smaller than this along every "
+        "axis are removed from the radio mesh")
+    merge_tolerance_m: float = Field(1e-4, gt=0, le=0.1, description="vertices closer than this merge")
+    decimation: Literal["lossless", "quadric", "none"] = "lossless"
+    decimation_target_fraction: float = Field(
+        0.5, gt=0, le=1, description="quadric only: triangles kept per smooth patch, after lossless")
+    sharp_edge_angle_deg: float = Field(
+        30.0, gt=0, lt=180, description="quadric only: edges bending more than this are kept exactly")
+    drop_degenerate_faces: bool = Field(
+        False, description="drop zero-area faces instead of refusing the mesh")
+    obstacle_classes: tuple[str, ...] = Field(
+        ("building",), description="semantic classes whose parts become building footprints of the "
+        "source geometry (device placement and trajectory clearance checks, indoor masks)")
+    wall_sheet_thickness_m: float = Field(
+        0.1, gt=0, description="thickness given to open (sheet) walls in building footprints")
+    hausdorff_samples: int = Field(20_000, ge=100, le=10_000_000)
+    seed: int = 0
+
+    @model_validator(mode="after")
+    def _known_defaults(self):
+        check_mesh_labels(self.default_semantic_class, self.default_radio_material)
+        for c in self.obstacle_classes:
+            check_mesh_labels(semantic_class=c)
+        return self
 
 
 class MeshSource(_Model):
@@ -85,26 +181,82 @@ class MeshSource(_Model):
 
     kind: Literal["mesh"]
     path: str
+    rules: MeshImportRules = Field(default_factory=lambda: MeshImportRules())
+
+    @field_validator("path")
+    @classmethod
+    def _inside_scene_dir(cls, v):
+        p = Path(v)
+        if p.is_absolute() or ".." in p.parts:
+            raise ValueError(f"{v!r}: the mesh must lie inside the scene directory "
+                             "(a relative path without '..')")
+        return v
 
 
 Source = Annotated[Union[ProceduralSource, OsmSource, MeshSource], Field(discriminator="kind")]
 
 
 class Materials(_Model):
-    """ITU radio material per semantic class (valid 1-100 GHz, ITU-R P.2040-3 Table 3)."""
+    """Radio material per semantic class, and OSM tag rules that override it.
+
+    Materials are :data:`simart_pipeline.radio.materials.RADIO_MATERIALS` names (ITU-R P.2040-3
+    Table 3, valid 1-100 GHz, plus water and wet facades). ``tags`` maps an OSM key to a mapping
+    of its values to materials; it is merged over :data:`DEFAULT_TAG_MATERIALS` (a key given here
+    replaces single values, not the whole key). A feature takes the material of the first rule
+    whose key and value it carries (keys in the order of the merged mapping), else its class's.
+    """
 
     building: str = "concrete"
     road: str = "concrete"
     ground: str = "medium_dry_ground"
+    vegetation: str = "medium_dry_ground"
+    water: str = "fresh_water"
     thickness_m: float = Field(0.2, gt=0)
+    tags: dict[str, dict[str, str]] = Field(default_factory=dict)
 
     @model_validator(mode="after")
     def _known(self):
-        for key in ("building", "road", "ground"):
-            if getattr(self, key) not in ITU_MATERIALS:
-                raise ValueError(f"{key}: unknown ITU material {getattr(self, key)!r}; "
-                                 f"known: {', '.join(ITU_MATERIALS)}")
+        for key in ("building", "road", "ground", "vegetation", "water"):
+            if getattr(self, key) not in RADIO_MATERIALS:
+                raise ValueError(f"{key}: unknown radio material {getattr(self, key)!r}; "
+                                 f"known: {', '.join(RADIO_MATERIALS)}")
+        for key, values in self.tags.items():
+            for value, mat in values.items():
+                if mat not in RADIO_MATERIALS:
+                    raise ValueError(f"tags.{key}.{value}: unknown radio material {mat!r}; "
+                                     f"known: {', '.join(RADIO_MATERIALS)}")
         return self
+
+    def tag_rules(self) -> dict[str, dict[str, str]]:
+        """:data:`DEFAULT_TAG_MATERIALS` with this config's ``tags`` merged over it."""
+        merged = {k: dict(v) for k, v in DEFAULT_TAG_MATERIALS.items()}
+        for key, values in self.tags.items():
+            merged.setdefault(key, {}).update(values)
+        return merged
+
+
+# OSM tag values to radio materials. P.2040-3 has no asphalt or stone: asphalt and paved surfaces
+# use concrete (the usual proxy), natural stone uses marble (its only stone); loose surfaces use
+# the ground classes. Water bodies use the Debye water models of radio.materials.
+DEFAULT_TAG_MATERIALS: dict[str, dict[str, str]] = {
+    "building:material": {
+        "brick": "brick", "concrete": "concrete", "reinforced_concrete": "concrete",
+        "cement_block": "concrete", "plaster": "concrete", "glass": "glass", "mirror": "glass",
+        "metal": "metal", "steel": "metal", "aluminium": "metal", "copper": "metal", "gold": "metal",
+        "wood": "wood", "timber_framing": "wood", "stone": "marble", "sandstone": "marble",
+        "limestone": "marble", "granite": "marble", "marble": "marble"},
+    "surface": {
+        "asphalt": "concrete", "concrete": "concrete", "concrete:plates": "concrete",
+        "concrete:lanes": "concrete", "paved": "concrete", "paving_stones": "concrete",
+        "sett": "marble", "cobblestone": "marble", "unhewn_cobblestone": "marble", "stone": "marble",
+        "metal": "metal", "wood": "wood", "gravel": "very_dry_ground", "fine_gravel": "very_dry_ground",
+        "sand": "very_dry_ground", "unpaved": "medium_dry_ground", "compacted": "medium_dry_ground",
+        "dirt": "medium_dry_ground", "earth": "medium_dry_ground", "ground": "medium_dry_ground",
+        "grass": "medium_dry_ground", "mud": "wet_ground"},
+    "natural": {"water": "fresh_water", "bay": "sea_water", "strait": "sea_water", "wetland": "wet_ground"},
+    "water": {"lagoon": "sea_water", "sea": "sea_water"},
+    "landuse": {"reservoir": "fresh_water", "basin": "fresh_water"},
+}
 
 
 class Array(_Model):
@@ -212,11 +364,33 @@ class WaypointTrajectory(_Model):
         return v
 
 
+class ReplayTrajectory(_Model):
+    """A recorded trajectory replayed onto the shared clock (offline replay).
+
+    ``path`` (relative to the scene directory) is a CSV with a header: ``time_ns`` (or ``time_s``),
+    ``x_m``, ``y_m``, ``z_m`` in the world frame, optionally ``qx, qy, qz, qw`` (base_link into
+    world) and ``vx_mps, vy_mps, vz_mps``. See ``simart_pipeline.mobility.replay``.
+    """
+
+    kind: Literal["replay"]
+    path: str
+    time_offset_s: float = Field(0.0, description="added to the recorded times")
+
+
+def _trajectory_kind(v) -> str:
+    return (v.get("kind", "waypoints") if isinstance(v, dict) else getattr(v, "kind", "waypoints"))
+
+
+TrajectorySource = Annotated[
+    Union[Annotated[WaypointTrajectory, Tag("waypoints")], Annotated[ReplayTrajectory, Tag("replay")]],
+    Discriminator(_trajectory_kind)]
+
+
 class Platform(_Model):
     name: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$")
     kind: Literal["uav", "ground_vehicle", "pedestrian"]
     array: Array = Array()
-    trajectory: WaypointTrajectory
+    trajectory: TrajectorySource
     sensors: tuple[Sensor, ...] = ()
 
 
@@ -231,7 +405,7 @@ class Clock(_Model):
 
 
 class RayTracing(_Model):
-    """Sionna RT PathSolver settings."""
+    """Sionna RT PathSolver settings (always run in its deterministic mode, with ``seed``)."""
 
     max_depth: int = Field(3, ge=0, le=10)
     samples_per_src: int = Field(100_000, ge=1_000, le=100_000_000)
@@ -240,8 +414,15 @@ class RayTracing(_Model):
     specular_reflection: bool = True
     diffuse_reflection: bool = False
     refraction: bool = False
+    diffraction: bool = False
+    edge_diffraction: bool = False
     seed: int = 42
     max_receivers_per_call: int = Field(2000, ge=1)
+    max_solver_memory_gib: float = Field(
+        4.0, gt=0, description="receivers per PathSolver call are capped so that the deterministic "
+        "solver's working set (about 48 B x depth x samples x receivers, measured) stays below this")
+    store_interaction_points: bool = Field(
+        False, description="store every path's interaction points (time x link x depth x path x 3)")
 
 
 class Ofdm(_Model):
@@ -252,6 +433,18 @@ class Ofdm(_Model):
     num_resource_blocks: int = Field(51, ge=1, le=275)
     num_ofdm_symbols: int = Field(14, ge=1)
     cyclic_prefix: Literal["normal", "extended"] = "normal"
+
+    @model_validator(mode="after")
+    def _cyclic_prefix(self):
+        # TS 38.211 Table 4.2-1: the extended cyclic prefix exists only for mu = 2; a slot holds
+        # 14 OFDM symbols with the normal prefix and 12 with the extended one (Table 4.3.2-1/-2).
+        per_slot = 12 if self.cyclic_prefix == "extended" else 14
+        if self.cyclic_prefix == "extended" and self.numerology_mu != 2:
+            raise ValueError("cyclic_prefix: 'extended' exists only for numerology_mu 2 (60 kHz)")
+        if self.num_ofdm_symbols > per_slot:
+            raise ValueError(f"num_ofdm_symbols: at most {per_slot} per slot with the "
+                             f"{self.cyclic_prefix} cyclic prefix")
+        return self
 
     @property
     def subcarrier_spacing_hz(self) -> float:
@@ -272,19 +465,66 @@ class Receiver(_Model):
 
 
 class Codebook(_Model):
-    """DFT codebook of the base-station UPA: oversampling per axis (1 = orthogonal beams)."""
+    """DFT codebook of the base-station UPA: oversampling per axis (1 = orthogonal beams).
+
+    ``visible_only`` drops the grid beams whose direction cosines lie outside the unit circle
+    (no real direction; 12 of the 64 beams of an 8 x 8 half-wavelength array). ``path`` names a
+    ``.npy`` file of complex precoders ``[num_beams, num_tx_antennas]`` (Sionna antenna order,
+    relative to the scene directory) that replaces the DFT grid.
+    """
 
     oversampling: int = Field(1, ge=1, le=8)
+    visible_only: bool = False
+    path: str | None = None
+
+
+class Link(_Model):
+    """Link and system level (docs/link-level.md): resource allocation, TBS overheads, MCS table,
+    link adaptation. Downlink: base stations transmit the PDSCH to the platforms."""
+
+    first_resource_block: int = Field(0, ge=0, description="first allocated resource block")
+    num_allocated_resource_blocks: int | None = Field(
+        None, ge=1, description="allocated resource blocks; None: from first_resource_block to "
+                                "the carrier's last")
+    dmrs_re_per_prb: int = Field(12, ge=0, le=72, description="DMRS resource elements per PRB "
+                                 "and slot, N_DMRS^PRB of TS 38.214 5.1.3.2")
+    overhead_re_per_prb: Literal[0, 6, 12, 18] = Field(
+        0, description="xOverhead, N_oh^PRB of TS 38.214 5.1.3.2")
+    mcs_table: Literal[1, 2] = Field(
+        1, description="TS 38.214 Table 5.1.3.1-1 (64QAM) or -2 (256QAM); the EESM beta table "
+                       "covers these two")
+    bler_target: float = Field(0.1, gt=0, lt=1, description="transport BLER target of link "
+                                                              "adaptation")
+    link_adaptation: Literal["inner_loop", "outer_loop"] = "inner_loop"
+    olla_delta_up_db: float = Field(1.0, gt=0, description="outer loop: offset step on a NACK")
+    olla_offset_limits_db: Vec2 = (-20.0, 20.0)
+
+    @model_validator(mode="after")
+    def _limits(self):
+        if self.olla_offset_limits_db[0] > self.olla_offset_limits_db[1]:
+            raise ValueError("olla_offset_limits_db: the lower limit exceeds the upper one")
+        return self
 
 
 class Ckm(_Model):
-    """Channel-knowledge-map grid: a fixed-height plane split into tiles (the tile partitions)."""
+    """Channel-knowledge-map grid: horizontal planes at one or more heights, split into tiles (the
+    tile partitions). Cells inside buildings or outside ``region_m`` are masked and never traced."""
 
     center_m: Vec2 = (0.0, 0.0)
     size_m: Vec2 = (100.0, 100.0)
     cell_size_m: float = Field(5.0, gt=0)
-    height_m: float = 1.5
+    height_m: float | None = Field(None, description="one receiver height (m); or use heights_m")
+    heights_m: tuple[float, ...] | None = Field(None, description="several heights: a 3D voxel map")
+    region_m: tuple[Vec2, ...] | None = Field(
+        None, description="polygon (ENU x, y vertices) of the region of interest; default the whole grid")
     tiles: tuple[int, int] = Field((2, 2), description="tiles along x, along y")
+    mode: Literal["reference", "fast"] = Field(
+        "reference", description="reference: PathSolver at cell centres; fast: one shoot-and-bounce pass")
+    num_rays: int = Field(10_000_000, ge=1_000, description="fast mode: rays per transmitter")
+    min_hits_for_spread: int = Field(10, ge=1, description="fast mode: fewer ray hits mask the spreads")
+    weathers: tuple[Literal["sunny", "rainy", "night"], ...] | None = Field(
+        None, description="weathers whose radio materials get a map (default: the scene's); weathers "
+        "with equal materials share one map")
 
     @field_validator("tiles")
     @classmethod
@@ -292,6 +532,23 @@ class Ckm(_Model):
         if not (1 <= v[0] <= MAX_TILES_PER_AXIS and 1 <= v[1] <= MAX_TILES_PER_AXIS):
             raise ValueError(f"tiles per axis must be within 1..{MAX_TILES_PER_AXIS}")
         return v
+
+    @model_validator(mode="after")
+    def _heights(self):
+        if self.height_m is not None and self.heights_m is not None:
+            raise ValueError("give height_m or heights_m, not both")
+        if self.heights_m is not None and (not self.heights_m or len(set(self.heights_m)) != len(self.heights_m)):
+            raise ValueError("heights_m: at least one height, none repeated")
+        if self.region_m is not None and len(self.region_m) < 3:
+            raise ValueError("region_m: a polygon needs at least three vertices")
+        return self
+
+    @property
+    def heights(self) -> tuple[float, ...]:
+        """Receiver heights (m): ``heights_m``, else ``(height_m,)``, else 1.5 m."""
+        if self.heights_m is not None:
+            return tuple(self.heights_m)
+        return (1.5 if self.height_m is None else self.height_m,)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -313,6 +570,7 @@ class SceneConfig(_Model):
     ofdm: Ofdm = Ofdm()
     receiver: Receiver = Receiver()
     codebook: Codebook = Codebook()
+    link: Link = Link()
     ckm: Ckm = Ckm()
     weathers: tuple[Literal["sunny", "rainy", "night"], ...] = WEATHERS
     seed: int = Field(0, description="seed of every random draw (sensor noise, layouts)")
@@ -349,7 +607,7 @@ def _loc(loc: tuple) -> str:
     return ".".join(parts) or "(top level)"
 
 
-_UNION_TAGS = {"procedural", "osm", "mesh", "camera", "lidar", "imu", "gps"}
+_UNION_TAGS = {"procedural", "osm", "mesh", "camera", "lidar", "imu", "gps", "waypoints", "replay"}
 
 
 def load_scene_config(scene_dir: str | Path) -> SceneConfig:
@@ -376,6 +634,14 @@ def load_scene_config(scene_dir: str | Path) -> SceneConfig:
     if cfg.name != scene_dir.resolve().name:
         problems.append(f"{path}: name: {cfg.name!r} differs from the scene directory's name "
                         f"{scene_dir.resolve().name!r}")
+    for i, p in enumerate(cfg.platforms):
+        if p.trajectory.kind == "replay":
+            rec = (scene_dir / p.trajectory.path).resolve()
+            if not rec.is_relative_to(scene_dir.resolve()):
+                problems.append(f"{path}: platforms.{i}.trajectory.path: {p.trajectory.path!r} points "
+                                "outside the scene directory")
+            elif not rec.is_file():
+                problems.append(f"{path}: platforms.{i}.trajectory.path: file not found: {rec}")
     if cfg.source.kind in ("osm", "mesh"):
         src = resolve_source_path(scene_dir, cfg)
         if not src.is_file():

@@ -19,12 +19,52 @@ def figure_markdown(fig) -> str:
     return f"![preview](data:image/png;base64,{base64.b64encode(buf.getvalue()).decode()})"
 
 
+_LAYER_COLOURS = {"water": "#9cc3e6", "vegetation": "#b5d99c", "parking": "0.8", "road": "0.75"}
+
+
+def _polygon_patches(geoms, **kw):
+    """One matplotlib PathPatch per polygon, holes included."""
+    from matplotlib.patches import PathPatch
+    from matplotlib.path import Path as MplPath
+
+    from simart_pipeline.scene.geometry import polygons_of
+
+    patches = []
+    for g in geoms:
+        for poly in polygons_of(g):
+            rings = [np.asarray(poly.exterior.coords)[:, :2]] + [np.asarray(r.coords)[:, :2] for r in poly.interiors]
+            verts = np.concatenate(rings)
+            codes = np.concatenate([[MplPath.MOVETO] + [MplPath.LINETO] * (len(r) - 2) + [MplPath.CLOSEPOLY]
+                                    for r in rings])
+            patches.append(PathPatch(MplPath(verts, codes), **kw))
+    return patches
+
+
+def _draw_source(ax, geom, building_colour="0.45", outline_only=False):
+    from matplotlib.collections import LineCollection, PatchCollection
+    from shapely.geometry import LineString
+
+    if not outline_only:
+        for cls, colour in _LAYER_COLOURS.items():
+            areas = [f.geometry for f in geom.of_class(cls) if not isinstance(f.geometry, LineString)]
+            if areas:
+                ax.add_collection(PatchCollection(_polygon_patches(areas), facecolor=colour, edgecolor="none"))
+        lines = [np.asarray(f.geometry.coords)[:, :2] for f in geom.of_class("road")
+                 if isinstance(f.geometry, LineString)]
+        if lines:
+            ax.add_collection(LineCollection(lines, colors="0.7", linewidths=1.0))
+    vols = [f.geometry for f in geom.volumes()]
+    if vols:
+        kw = ({"facecolor": "none", "edgecolor": building_colour, "linewidth": 0.8} if outline_only
+              else {"facecolor": building_colour, "edgecolor": "none"})
+        ax.add_collection(PatchCollection(_polygon_patches(vols), **kw))
+    ax.autoscale_view()
+
+
 def top_view(geom, cfg, traj=None, title: str = ""):
-    """Building footprints, base stations and platform tracks, seen from above."""
+    """Land cover, roads, buildings, base stations and platform tracks, seen from above."""
     fig, ax = plt.subplots(figsize=(5, 4))
-    for f in geom.of_class("building"):
-        xs, ys = f.geometry.exterior.xy
-        ax.fill(xs, ys, color="0.6", lw=0)
+    _draw_source(ax, geom)
     for b in cfg.base_stations:
         ax.plot(*b.position_m[:2], "r^", ms=8)
         ax.annotate(b.name, b.position_m[:2])
@@ -47,9 +87,7 @@ def heatmap(values: np.ndarray, x: np.ndarray, y: np.ndarray, geom, label: str, 
         im = ax.imshow(values, origin="lower", extent=[x[0] - half, x[-1] + half, y[0] - half, y[-1] + half],
                        cmap="viridis")
         fig.colorbar(im, ax=ax, label=label)
-    for f in geom.of_class("building"):
-        xs, ys = f.geometry.exterior.xy
-        ax.plot(xs, ys, "w-", lw=1)
+    _draw_source(ax, geom, building_colour="w", outline_only=True)
     ax.set_title(title)
     ax.set_xlabel("east (m)")
     ax.set_ylabel("north (m)")

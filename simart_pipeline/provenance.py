@@ -1,8 +1,11 @@
-"""Provenance attrs stamped on every store: config hash, code and package versions, seeds."""
+"""Provenance attrs stamped on every store: config hash, code and package versions, seeds.
+
+No wall-clock time: the same config and code give bitwise-equal stores (Dagster records when
+each materialisation ran).
+"""
 
 from __future__ import annotations
 
-import datetime as _dt
 import json
 import subprocess
 from functools import lru_cache
@@ -40,7 +43,6 @@ def attrs(cfg: SceneConfig, asset: str, **extra) -> dict:
         "world_origin_lat_lon_alt": [cfg.origin.latitude_deg, cfg.origin.longitude_deg, cfg.origin.altitude_m],
         "frame_convention": "ENU world frame around the origin; REP 105/103 frame names",
         "time_convention": "int64 ns of simulated time since session start",
-        "created_utc": _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat(),
     }
     if cfg.source.kind == "osm":
         out["attribution"] = OSM_ATTRIBUTION

@@ -36,7 +36,7 @@ def scene_problems(scene_dir: str | Path) -> tuple[SceneConfig | None, list[str]
             problems.append(f"{where}: base_stations.{i}.position_m: {b.name} at {list(b.position_m)} "
                             "is inside a building")
     for i, p in enumerate(cfg.platforms):
-        for k, w in enumerate(p.trajectory.waypoints_m):
+        for k, w in enumerate(getattr(p.trajectory, "waypoints_m", ())):
             if inside(w):
                 problems.append(f"{where}: platforms.{i}.trajectory.waypoints_m.{k}: {list(w)} is inside a building")
     ground = geom.of_class("ground")

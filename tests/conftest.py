@@ -14,3 +14,30 @@ def tiny_scene(tmp_path) -> Path:
     dst = tmp_path / "tiny"
     shutil.copytree(TESTS / "scenes" / "tiny", dst)
     return dst
+
+
+def write_radio_scene(out: Path, parts: dict, frequency_hz: float, thickness_m: float) -> Path:
+    """A Sionna scene XML with one PLY per named part: ``parts = {name: (trimesh, material)}``."""
+    from simart_pipeline.radio import materials
+
+    (out / "meshes").mkdir(parents=True)
+    lines = ['<scene version="2.1.0">']
+    for mat in sorted({m for _, m in parts.values()}):
+        lines.append(materials.bsdf_xml(mat, frequency_hz, thickness_m))
+    for name, (mesh, mat) in sorted(parts.items()):
+        mesh.export(out / "meshes" / f"{name}.ply", encoding="binary")
+        lines.append(f'<shape type="ply" id="{name}"><string name="filename" value="meshes/{name}.ply"/>'
+                     f'<boolean name="face_normals" value="true"/>'
+                     f'<ref id="{materials.bsdf_id(mat)}" name="bsdf"/></shape>')
+    lines.append("</scene>")
+    (out / "scene.xml").write_text("\n".join(lines))
+    return out / "scene.xml"
+
+
+def ground_square(size_m: float = 2000.0):
+    """A flat square at z = 0 facing up, centred on the origin."""
+    import trimesh
+
+    h = size_m / 2
+    return trimesh.Trimesh([[-h, -h, 0], [h, -h, 0], [h, h, 0], [-h, h, 0]], [[0, 1, 2], [0, 2, 3]],
+                           process=False)

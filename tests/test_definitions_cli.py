@@ -10,7 +10,7 @@ import pytest
 from simart_pipeline.cli import main
 from simart_pipeline.definitions import defs
 
-EXPECTED = {"osm_extract", "paired_meshes", "trajectory", "sensor_frames", "cirs", "kpis", "ckm_layers", "session"}
+EXPECTED = {"osm_extract", "paired_meshes", "trajectory", "sensor_frames", "cirs", "kpis", "ckm_layers", "ckm_map", "session"}
 
 
 def test_definitions_load_with_every_asset_and_partitioning():
@@ -18,7 +18,7 @@ def test_definitions_load_with_every_asset_and_partitioning():
     keys = {k.to_user_string() for k in graph.get_all_asset_keys()}
     assert keys == EXPECTED
     by_name = {k.to_user_string(): graph.get(k) for k in graph.get_all_asset_keys()}
-    scene_only = {"osm_extract", "paired_meshes", "trajectory"}
+    scene_only = {"osm_extract", "paired_meshes", "trajectory", "ckm_map"}
     for name, node in by_name.items():
         pd = node.partitions_def
         if name in scene_only:
@@ -33,6 +33,7 @@ def test_definitions_load_with_every_asset_and_partitioning():
     assert parents("cirs") == {"paired_meshes", "trajectory", "osm_extract"}
     assert parents("ckm_layers") == {"paired_meshes", "osm_extract"}
     assert parents("kpis") == {"cirs"}
+    assert parents("ckm_map") == {"ckm_layers", "osm_extract"}
 
 
 def test_dagster_definitions_validate(tmp_path):

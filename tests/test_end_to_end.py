@@ -1,4 +1,4 @@
-"""Materialise a tiny scene end to end through Dagster: every asset, two weathers, two tiles."""
+"""Materialise a tiny scene end to end through Dagster: every asset, three weathers, two tiles."""
 
 import numpy as np
 import pytest
@@ -10,7 +10,7 @@ from simart_pipeline import stores
 from simart_pipeline.cli import materialize_scene
 from simart_pipeline.config import load_scene_config
 
-WEATHERS = ["sunny", "rainy"]
+WEATHERS = ["sunny", "night", "rainy"]
 TILES = ["r0c0", "r0c1"]
 
 
@@ -37,14 +37,16 @@ def _all_finite_where_valid(ds: xr.Dataset):
 
 def test_one_store_per_asset_partition(run):
     data, out, instance, lines, cfg = run
-    expected = {"osm_extract": 1, "paired_meshes": 1, "trajectory": 1, "sensor_frames": 2, "cirs": 2,
-                "kpis": 2, "session": 2, "ckm_layers": 2}
+    expected = {"osm_extract": 1, "paired_meshes": 1, "trajectory": 1, "sensor_frames": 3, "cirs": 3,
+                "kpis": 3, "session": 3, "ckm": 2}
     assert {k: len(v) for k, v in out.items()} == expected
     assert (data / "paired_meshes" / "tiny" / "radio" / "scene.xml").is_file()
     assert any("materialised" in line for line in lines)
     # the instance recorded every materialisation
-    for key in ("cirs", "kpis", "session", "ckm_layers"):
-        assert len(instance.get_materialized_partitions(dg.AssetKey(key))) == 2
+    for key in ("cirs", "kpis", "session"):
+        assert len(instance.get_materialized_partitions(dg.AssetKey(key))) == 3
+    assert len(instance.get_materialized_partitions(dg.AssetKey("ckm_layers"))) == 2
+    assert len(instance.get_materialized_partitions(dg.AssetKey("ckm_map"))) == 1
 
 
 def test_units_and_time_alignment_across_streams(run):
@@ -81,29 +83,61 @@ def test_channels_and_kpis_are_computed(run):
     assert cirs["num_valid_paths"].values.max() >= 2 and cirs["los"].any()
     # a valid path has a positive delay, an invalid one is masked
     valid = cirs["valid"].values
-    assert (cirs["tau_s"].values[valid] > 0).all() and np.isnan(cirs["tau_s"].values[~valid]).all()
+    assert (cirs["tau_s"].values[valid] > 0).all() and (cirs["tau_s"].values[~valid] == -1).all()
     served = kpis["rx_served"].values
     assert served.any()
     assert np.isfinite(kpis["sinr_db"].values[served]).all()
     assert (kpis["sinr_db"].values[served] <= kpis["snr_db"].values[served] + 1e-9).all()
-    rainy = stores.open_store(data / "cirs" / "tiny" / "rainy.zarr")
+    rainy = stores.open_store(data / "cirs" / "tiny" / "rainy.zarr").load()
     assert "wet_ground" in rainy.attrs["weather_material_overrides"]
+    assert "wet_concrete" in rainy.attrs["weather_material_overrides"]
 
 
-def test_ckm_tiles_hold_path_gain(run):
-    data, _, _, _, cfg = run
-    a = stores.open_store(data / "ckm_layers" / "tiny" / "r0c0.zarr").load()
-    b = stores.open_store(data / "ckm_layers" / "tiny" / "r0c1.zarr").load()
-    mosaic = xr.concat([a, b], dim="x")
+def test_dry_weathers_trace_once_and_rain_traces_again(run):
+    """Night has sunny's radio materials: its CIRs are sunny's, reused by content hash, and say so."""
+    data, _, instance, _, _ = run
+    sunny, night, rainy = (stores.open_store(data / "cirs" / "tiny" / f"{w}.zarr").load() for w in WEATHERS)
+    assert night.attrs["reused_from_weather"] == "sunny" and sunny.attrs["reused_from_weather"] == ""
+    assert rainy.attrs["reused_from_weather"] == ""
+    assert night.attrs["cir_content_sha256"] == sunny.attrs["cir_content_sha256"] != rainy.attrs["cir_content_sha256"]
+    xr.testing.assert_identical(sunny.drop_attrs(), night.drop_attrs())
+    los = sunny["los"].values
+    assert not np.array_equal(sunny["a"].values[..., 1:], rainy["a"].values[..., 1:]) or not los.any()
+    events = instance.fetch_materializations(dg.AssetKey("cirs"), limit=10).records
+    meta = {e.asset_materialization.partition: e.asset_materialization.metadata for e in events}
+    night_meta = next(m for k, m in meta.items() if "night" in str(k))
+    assert night_meta["reused_from_weather"].value == "sunny"
+    assert "data:image/png;base64," in next(iter(meta.values()))["paths_picture"].value
+
+
+def test_ckm_maps_hold_every_layer_for_dry_and_wet_materials(run, capsys):
+    data, _, instance, _, cfg = run
+    from simart_pipeline.cli import main
+
+    dry = stores.open_store(data / "ckm" / "tiny" / "sunny.zarr").load()
+    wet = stores.open_store(data / "ckm" / "tiny" / "rainy.zarr").load()
+    assert dry.attrs["map_weathers"] == "sunny,night" and wet.attrs["map_weathers"] == "rainy"
     rows, cols = cfg.ckm.shape
-    assert mosaic.sizes["y"] == rows and mosaic.sizes["x"] == cols
-    gain = mosaic["path_gain_db"].values
-    assert np.isfinite(gain[mosaic["has_path"].values]).all()
-    assert (gain[np.isfinite(gain)] < 0).all()  # passive channel: gain below 0 dB
-    outdoor = ~mosaic["cell_inside_building"].values
-    covered = mosaic["has_path"].any("bs").values
-    assert not covered[~outdoor].any()  # indoor cells are masked, never traced
-    assert covered[outdoor].mean() > 0.8, covered[outdoor].mean()
+    assert dry.sizes["y"] == rows and dry.sizes["x"] == cols and dry["tile_complete"].all()
+    for layer in ("path_gain_db", "path_loss_db", "path_gain_coherent_db", "rx_power_dbm", "toa_s",
+                  "rms_delay_spread_s", "asa_deg", "asd_deg", "zsa_deg", "zsd_deg", "los", "count",
+                  "best_bs", "sinr_db", "effective_sinr_db", "mcs_index", "bler", "rate_bps",
+                  "best_beam", "best_beam_gain_db", "beam_gain_db"):
+        assert layer in dry and "long_name" in dry[layer].attrs, layer
+    gain = dry["path_gain_db"].values
+    has = dry["has_path"].values
+    assert np.isfinite(gain[has]).all() and (gain[has] < 0).all()  # passive channel
+    indoor = dry["cell_inside_building"].values
+    assert indoor.any() and not has[:, indoor].any()  # indoor cells are masked, never traced
+    assert has.any(axis=0)[~indoor].mean() > 0.8
+    # rain changes the reflections, so the wet map differs where paths bounce
+    assert not np.allclose(np.nan_to_num(dry["path_gain_db"].values), np.nan_to_num(wet["path_gain_db"].values))
+    events = instance.fetch_materializations(dg.AssetKey("ckm_map"), limit=1).records
+    meta = events[0].asset_materialization.metadata
+    assert meta["sunny_tiles_complete"].value == "2/2"
+    assert "data:image/png;base64," in meta["sunny_path_gain_db"].value
+    assert main(["ckm", "tiny", "--data", str(data), "--weather", "night", "--layer", "sinr_db"]) == 0
+    assert "sinr_db" in capsys.readouterr().out
 
 
 def test_rerun_is_idempotent_and_reproducible(run):

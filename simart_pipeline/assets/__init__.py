@@ -1,8 +1,8 @@
-from simart_pipeline.assets.ckm import ckm_layers
+from simart_pipeline.assets.ckm import ckm_layers, ckm_map
 from simart_pipeline.assets.link import kpis
 from simart_pipeline.assets.radio import cirs
 from simart_pipeline.assets.scene import osm_extract, paired_meshes, trajectory
 from simart_pipeline.assets.sensing import sensor_frames
 from simart_pipeline.assets.session import session
 
-ALL_ASSETS = [osm_extract, paired_meshes, trajectory, sensor_frames, cirs, kpis, ckm_layers, session]
+ALL_ASSETS = [osm_extract, paired_meshes, trajectory, sensor_frames, cirs, kpis, ckm_layers, ckm_map, session]

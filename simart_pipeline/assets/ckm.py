@@ -1,4 +1,5 @@
-"""Channel-knowledge-map assets: the layers of one grid tile."""
+"""Channel-knowledge-map assets: each tile writes its region of the scene's mosaic store; the
+scene's map gathers pictures of every layer."""
 
 import time
 
@@ -7,35 +8,70 @@ import numpy as np
 import xarray as xr
 
 from simart_pipeline import previews, provenance
-from simart_pipeline.ckm.grid import tile_slices
-from simart_pipeline.ckm.layers import tile_layers
-from simart_pipeline.partitions import from_scene, scene_tile, split_key
+from simart_pipeline.ckm import mosaic
+from simart_pipeline.ckm.grid import parse_tile_key, scene_tiles, tile_slices
+from simart_pipeline.ckm.maps import map_groups, map_path, map_template, picture_layers
+from simart_pipeline.partitions import from_scene, scene_partitions, scene_tile, split_key
 from simart_pipeline.resources import ProjectResource, RayTracerResource
 from simart_pipeline.scene import geometry
 from simart_pipeline.scene.meshes import SceneMeshes
 
 
-@dg.asset(partitions_def=scene_tile, code_version="1", group_name="ckm", pool="raytracing",
+@dg.asset(partitions_def=scene_tile, code_version="2", group_name="ckm", pool="raytracing",
           ins={"paired_meshes": dg.AssetIn(partition_mapping=from_scene),
                "osm_extract": dg.AssetIn(partition_mapping=from_scene)})
 def ckm_layers(context: dg.AssetExecutionContext, project: ProjectResource, ray_tracer: RayTracerResource,
-               paired_meshes: SceneMeshes, osm_extract: xr.Dataset) -> dg.Output[xr.Dataset]:
-    """Path gain, path loss, LoS, ToA and path count per cell of one tile and base station."""
+               paired_meshes: SceneMeshes, osm_extract: xr.Dataset) -> dg.MaterializeResult:
+    """Every CKM layer of one tile, for each set of radio materials, written into its chunk-aligned
+    region of the scene's mosaic store (``ckm/<scene>/<materials>.zarr``)."""
+    from simart_pipeline.ckm.layers import tile_layers
+
     scene, tile = split_key(context.partition_key)
     cfg = project.config(scene)
-    geom = geometry.from_dataset(osm_extract.load())
     t0 = time.perf_counter()
-    # A tile outside the scene's tiling, or with every cell indoors, needs no scene loaded.
-    needs_radio = tile_slices(cfg.ckm, tile) is not None
-    radio = ray_tracer.load(paired_meshes, cfg, "sunny") if needs_radio else None
-    ds = tile_layers(radio, cfg, geom, tile)
-    elapsed = time.perf_counter() - t0
-    ds.attrs.update(provenance.attrs(cfg, "ckm_layers"))
-    meta = {"cells": int(ds.sizes["y"] * ds.sizes["x"]), "cells_traced": ds.attrs["cells_traced"],
-            "in_scene_tiling": bool(ds.attrs["in_scene_tiling"]), "compute_s": round(elapsed, 2)}
-    if ds.attrs["cells_traced"]:
-        best = ds["path_gain_db"].max("bs", skipna=True).values
-        meta["preview"] = dg.MetadataValue.md(previews.heatmap(
-            np.nan_to_num(best, nan=np.nanmin(best) if np.isfinite(best).any() else 0.0),
-            ds["x"].values, ds["y"].values, geom, "best path gain (dB)", title=f"{scene} {tile}"))
-    return dg.Output(ds, metadata=meta)
+    if tile_slices(cfg.ckm, tile) is None:  # a static tile this scene's grid does not use
+        return dg.MaterializeResult(metadata={"in_scene_tiling": False, "cells_traced": 0})
+    geom = geometry.from_dataset(osm_extract.load())
+    meta = {"in_scene_tiling": True, "mode": cfg.ckm.mode}
+    for name, weathers in map_groups(cfg).items():
+        radio = ray_tracer.load(paired_meshes, cfg, name)
+        ds = tile_layers(radio, cfg, geom, tile)
+        path = map_path(project.data_root, scene, name)
+        spec, coords, attrs = map_template(cfg, ds, weathers,
+                                           provenance.attrs(cfg, "ckm_layers", weathers=",".join(weathers)))
+        mosaic.ensure_template(path, cfg.ckm, spec, coords, attrs)
+        mosaic.write_tile(path, cfg.ckm, tile, ds)
+        meta[f"{name}_store"] = dg.MetadataValue.path(str(path))
+        meta["cells_traced"] = int(ds.attrs["cells_traced"])
+        meta[f"{name}_weathers"] = ", ".join(weathers)
+    meta["compute_s"] = round(time.perf_counter() - t0, 2)
+    cells = int(np.prod([len(range(*s.indices(10**9))) for s in tile_slices(cfg.ckm, tile)]))
+    meta["cells"] = cells * len(cfg.ckm.heights)
+    if meta["cells_traced"]:
+        meta["cells_per_s"] = round(meta["cells_traced"] / max(meta["compute_s"], 1e-9), 1)
+    return dg.MaterializeResult(metadata=meta)
+
+
+@dg.asset(partitions_def=scene_partitions, code_version="1", group_name="ckm",
+          deps=[dg.AssetDep("ckm_layers", partition_mapping=from_scene)],
+          ins={"osm_extract": dg.AssetIn()})
+def ckm_map(context: dg.AssetExecutionContext, project: ProjectResource, osm_extract: xr.Dataset) -> dg.MaterializeResult:
+    """The scene's channel knowledge maps: which tiles are complete, and a heat map of every layer
+    (first height; per-station layers shown for the serving station) over the building footprints."""
+    scene = context.partition_key
+    cfg = project.config(scene)
+    geom = geometry.from_dataset(osm_extract.load())
+    meta = {}
+    wanted = scene_tiles(cfg.ckm)
+    for name, weathers in map_groups(cfg).items():
+        path = map_path(project.data_root, scene, name)
+        ds = mosaic.open_map(path).load()
+        done = ds["tile_complete"].values
+        complete = [t for t in wanted if done[parse_tile_key(t)]]
+        meta[f"{name}_store"] = dg.MetadataValue.path(str(path))
+        meta[f"{name}_tiles_complete"] = f"{len(complete)}/{len(wanted)}"
+        for layer, values, label in picture_layers(ds):
+            meta[f"{name}_{layer}"] = dg.MetadataValue.md(previews.heatmap(
+                values, ds["x"].values, ds["y"].values, geom, label,
+                title=f"{scene} {name} {layer} (h = {float(ds['height'][0]):g} m)"))
+    return dg.MaterializeResult(metadata=meta)

@@ -4,23 +4,31 @@ import dagster as dg
 import numpy as np
 import xarray as xr
 
-from simart_pipeline import provenance
+from simart_pipeline import provenance, stores
+from simart_pipeline.link.beams import scene_codebook_weights
 from simart_pipeline.link.kpis import compute_kpis
 from simart_pipeline.partitions import scene_weather, split_key
 from simart_pipeline.resources import ProjectResource
 
 
-@dg.asset(partitions_def=scene_weather, code_version="1", group_name="radio")
-def kpis(context: dg.AssetExecutionContext, project: ProjectResource, cirs: xr.Dataset) -> dg.Output[xr.Dataset]:
-    """Beam gains over the DFT codebook, best beam, SINR with interference, Shannon rate."""
-    scene, _ = split_key(context.partition_key)
+@dg.asset(partitions_def=scene_weather, code_version="2", group_name="radio")
+def kpis(context: dg.AssetExecutionContext, project: ProjectResource,
+         cirs: xr.Dataset) -> dg.Output[xr.Dataset]:
+    """Beam gains, best beam, serving cell, SINR with interference, EESM, BLER, MCS, TBS, rates."""
+    scene, weather = split_key(context.partition_key)
     cfg = project.config(scene)
-    ds = compute_kpis(cirs.load(), cfg)
+    weights = None
+    if cfg.codebook.path is not None:
+        weights = scene_codebook_weights(cfg, cirs["tx_ant_position_m"].values,
+                                         project.scene_dir(scene))
+    source = str(stores.store_path(project.data_root, "cirs", scene, weather))
+    ds = compute_kpis(cirs.load(), cfg, codebook_weights=weights, source=source)
     ds.attrs.update(provenance.attrs(cfg, "kpis"))
-    meta = {"time_steps": ds.sizes["time"]}
-    if "sinr_db" in ds:
-        sinr = ds["sinr_db"].values
-        if np.isfinite(sinr).any():
-            meta.update(sinr_db_median=float(np.nanmedian(sinr)), sinr_db_min=float(np.nanmin(sinr)),
-                        sinr_db_max=float(np.nanmax(sinr)))
+    meta = {"time_steps": ds.sizes["time"], "served_fraction": float(ds["rx_served"].mean())}
+    for name in ("sinr_db", "effective_sinr_db"):
+        v = ds[name].values
+        if np.isfinite(v).any():
+            meta[f"{name}_median"] = float(np.nanmedian(v))
+    if ds["rx_served"].any():
+        meta["mcs_rate_mbps_mean"] = float(ds["mcs_rate_bps"].where(ds["rx_served"]).mean()) / 1e6
     return dg.Output(ds, metadata=meta)

@@ -9,36 +9,39 @@ from simart_pipeline import previews, provenance
 from simart_pipeline.mobility.trajectory import build_trajectory, check_clear_of_buildings
 from simart_pipeline.partitions import scene_partitions
 from simart_pipeline.resources import ProjectResource
-from simart_pipeline.scene import geometry, meshes
+from simart_pipeline.scene import build, geometry, meshes
 
 
-@dg.asset(partitions_def=scene_partitions, code_version="1", group_name="scene")
+@dg.asset(partitions_def=scene_partitions, code_version="2", group_name="scene")
 def osm_extract(context: dg.AssetExecutionContext, project: ProjectResource) -> dg.Output[xr.Dataset]:
-    """Source geometry in the local ENU frame: footprints, roads, ground, with heights and materials."""
+    """Source geometry in the local ENU frame: buildings and parts, roads, land cover, ground; heights, roofs, materials."""
     scene = context.partition_key
     cfg = project.config(scene)
     geom = geometry.build_source_geometry(cfg, project.scene_dir(scene))
     ds = geometry.to_dataset(geom)
     ds.attrs.update(provenance.attrs(cfg, "osm_extract", source_kind=cfg.source.kind))
     counts = {c: len(geom.of_class(c)) for c in geometry.FEATURE_CLASSES}
-    return dg.Output(ds, metadata={**{f"num_{k}": v for k, v in counts.items()},
+    return dg.Output(ds, metadata={**{f"num_{k}": v for k, v in counts.items()}, "num_warnings": len(geom.warnings),
                                    "preview": dg.MetadataValue.md(previews.top_view(geom, cfg, title=scene))})
 
 
-@dg.asset(partitions_def=scene_partitions, code_version="1", group_name="scene")
+@dg.asset(partitions_def=scene_partitions, code_version="2", group_name="scene")
 def paired_meshes(context: dg.AssetExecutionContext, project: ProjectResource,
                   osm_extract: xr.Dataset) -> dg.Output[meshes.PairedMeshesOutput]:
-    """Visual mesh (per-face class and instance) and radio mesh (Mitsuba XML + PLY, ITU materials)."""
+    """Visual mesh (per-face class and instance, facade detail) and radio mesh (Mitsuba XML + PLY)."""
     scene = context.partition_key
     cfg = project.config(scene)
     t0 = time.perf_counter()
-    m = meshes.build_meshes(geometry.from_dataset(osm_extract.load()))
-    info = provenance.attrs(cfg, "paired_meshes", carrier_frequency_hz=cfg.ofdm.carrier_frequency_hz)
-    counts = m.counts()
-    return dg.Output(meshes.PairedMeshesOutput(m, info, cfg.materials.thickness_m),
-                     metadata={**{k: v for k, v in counts.items() if k != "radio_materials"},
-                               "radio_materials": ", ".join(counts["radio_materials"]),
-                               "build_s": round(time.perf_counter() - t0, 3)})
+    out = build.paired_meshes_for_scene(cfg, project.scene_dir(scene), geometry.from_dataset(osm_extract.load()),
+                                        provenance.attrs(cfg, "paired_meshes"))
+    counts = out.meshes.counts()
+    report = out.scene_info.get("mesh_import", {})
+    return dg.Output(out, metadata={
+        **{k: v for k, v in counts.items() if k not in ("radio_materials", "radio_triangles_per_mesh")},
+        "radio_materials": ", ".join(counts["radio_materials"]),
+        "radio_triangles_per_mesh": dg.MetadataValue.json(counts["radio_triangles_per_mesh"]),
+        **{k: report[k] for k in ("triangle_reduction", "hausdorff_p95_m", "hausdorff_max_m") if k in report},
+        "build_s": round(time.perf_counter() - t0, 3)})
 
 
 @dg.asset(partitions_def=scene_partitions, code_version="1", group_name="scene")
@@ -48,7 +51,7 @@ def trajectory(context: dg.AssetExecutionContext, project: ProjectResource,
     scene = context.partition_key
     cfg = project.config(scene)
     geom = geometry.from_dataset(osm_extract.load())
-    ds = build_trajectory(cfg)
+    ds = build_trajectory(cfg, project.scene_dir(scene))
     check_clear_of_buildings(ds, geom, where=f"scene {scene}")
     ds.attrs.update(provenance.attrs(cfg, "trajectory"))
     return dg.Output(ds, metadata={"num_platforms": ds.sizes["platform"], "num_samples": ds.sizes["time"],

@@ -1,16 +1,21 @@
-"""The CKM grid: cell centres at a fixed height, split into tiles (the tile partitions).
+"""The CKM grid: cell centres on horizontal planes, split into chunk-aligned tiles (the partitions).
 
 Cell (row i, col j) has its centre at
-``x = center_x - size_x / 2 + (j + 0.5) * cell``, ``y = center_y - size_y / 2 + (i + 0.5) * cell``.
-Tile ``r{a}c{b}`` holds rows ``row_edges[a]:row_edges[a+1]`` and cols ``col_edges[b]:col_edges[b+1]``
-of an even split (``numpy.array_split``); tiles beyond the scene's ``ckm.tiles`` are empty.
+``x = center_x - size_x / 2 + (j + 0.5) * cell``, ``y = center_y - size_y / 2 + (i + 0.5) * cell``,
+at every height of ``ckm.heights``. Tiles are Zarr chunks: along each axis a tile spans
+``chunk = ceil(n / tiles)`` cells, tile ``r{a}c{b}`` holds rows ``a*chunk_y : (a+1)*chunk_y`` and
+cols ``b*chunk_x : (b+1)*chunk_x`` (the last ones may be shorter). So every tile writes whole chunks
+of the mosaic store and parallel tiles never share a chunk. Tiles beyond the scene's ``ckm.tiles``
+(or past the grid's end) are empty.
 """
 
 from __future__ import annotations
 
+import math
 import re
 
 import numpy as np
+import shapely
 
 from simart_pipeline.config import Ckm
 
@@ -36,6 +41,13 @@ def cell_centres(ckm: Ckm) -> tuple[np.ndarray, np.ndarray]:
     return y, x
 
 
+def chunk_shape(ckm: Ckm) -> tuple[int, int]:
+    """(rows, cols) of one tile: the mosaic store's chunk shape along y and x."""
+    rows, cols = ckm.shape
+    n_cols_tiles, n_rows_tiles = ckm.tiles
+    return math.ceil(rows / n_rows_tiles), math.ceil(cols / n_cols_tiles)
+
+
 def tile_slices(ckm: Ckm, key: str) -> tuple[slice, slice] | None:
     """Row and column slices of tile ``key``; None when the scene's tiling has no such tile."""
     r, c = parse_tile_key(key)
@@ -43,11 +55,22 @@ def tile_slices(ckm: Ckm, key: str) -> tuple[slice, slice] | None:
     if r >= n_rows_tiles or c >= n_cols_tiles:
         return None
     rows, cols = ckm.shape
-    re_ = np.linspace(0, rows, n_rows_tiles + 1).round().astype(int)
-    ce = np.linspace(0, cols, n_cols_tiles + 1).round().astype(int)
-    return slice(re_[r], re_[r + 1]), slice(ce[c], ce[c + 1])
+    cr, cc = chunk_shape(ckm)
+    if r * cr >= rows or c * cc >= cols:
+        return None  # a tile past the grid's end (more tiles than cells)
+    return slice(r * cr, min((r + 1) * cr, rows)), slice(c * cc, min((c + 1) * cc, cols))
 
 
 def scene_tiles(ckm: Ckm) -> list[str]:
     n_cols_tiles, n_rows_tiles = ckm.tiles
-    return [tile_key(r, c) for r in range(n_rows_tiles) for c in range(n_cols_tiles)]
+    return [tile_key(r, c) for r in range(n_rows_tiles) for c in range(n_cols_tiles)
+            if tile_slices(ckm, tile_key(r, c)) is not None]
+
+
+def outside_region(ckm: Ckm, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Cells whose centre lies outside the region of interest (all False without a region)."""
+    xx, yy = np.meshgrid(x, y)
+    if ckm.region_m is None:
+        return np.zeros(xx.shape, bool)
+    region = shapely.Polygon(ckm.region_m)
+    return ~shapely.contains_xy(region, xx, yy)

@@ -1,89 +1,218 @@
-"""CKM layers of one tile, traced at the cell centres with PathSolver (reference mode).
+"""CKM layers of one tile, in the mode the scene config chooses.
 
-First version: per (base station, cell) the incoherent path gain, line of sight, time of arrival
-and number of paths. Cells inside buildings are masked and never traced; a tile with no cell to
-trace returns at once. Results do not depend on the tile: every cell is traced from the same
-scene, seed and settings, and a cell's value depends only on its own centre.
+- ``reference``: Sionna RT PathSolver at every traced cell centre, all cells of the tile and all
+  base stations in batched calls (``RadioScene.grid_scan``); per-path beam gains from the stored
+  per-antenna coefficients.
+- ``fast``: one shoot-and-bounce pass per base station over the tile's planes
+  (:mod:`simart_pipeline.ckm.one_pass`).
 
-Path gain (incoherent) of a cell: ``sum_p mean_{tx_ant, rx_ant} |a_p|^2``, the power gain from one
-antenna element to one antenna element summed over paths without phases.
+Both reduce what reaches a cell to the same :class:`~simart_pipeline.ckm.moments.CellMoments`, so
+both write the same layers with the same definitions (:mod:`simart_pipeline.ckm.moments`); the
+link-level layers (best base station, SINR with interference, MCS, BLER, rate) are then computed
+per cell from the beam gains (:mod:`simart_pipeline.ckm.link_layers`), with no state carried from
+one cell to another. Cells inside buildings or outside the region are masked and never traced; a
+tile with no cell to trace returns at once, without loading a scene. A cell's values depend only on
+its own centre, never on the tile or the order of tiles.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import xarray as xr
+from scipy.constants import speed_of_light
 
-from simart_pipeline.ckm.grid import cell_centres, tile_slices
+from simart_pipeline.ckm import moments as mom
+from simart_pipeline.ckm.grid import cell_centres, outside_region, tile_slices
 from simart_pipeline.config import SceneConfig
-from simart_pipeline.radio.tracer import RadioScene
 from simart_pipeline.scene.geometry import SourceGeometry, inside_buildings
 
-NO_PATH = "no valid path from this base station to the cell centre, or the cell is masked"
+MASKED = "cell masked (inside a building or outside the region), or nothing reached it"
+PROPAGATION_FLOAT_LAYERS = ("path_gain_db", "path_loss_db", "path_gain_coherent_db", "rx_power_dbm",
+                            "los_power_fraction", "toa_s", "mean_delay_s", "rms_delay_spread_s",
+                            *mom.SPREAD_NAMES.values(), *mom.MEAN_ANGLE_NAMES.values(),
+                            "best_beam_gain_db")
+BEAM_CHUNK_BYTES = 256 * 2**20
 
 
-def tile_layers(radio: RadioScene | None, cfg: SceneConfig, geom: SourceGeometry, tile: str) -> xr.Dataset:
-    """All layers of tile ``tile`` as a dataset over (bs, y, x); ``radio`` may be None if empty."""
+@dataclass
+class TileGrid:
+    """The cells of one tile: coordinates, masks and the points to trace."""
+
+    tile: str
+    rows: np.ndarray      # grid row index of each tile row
+    cols: np.ndarray
+    y: np.ndarray
+    x: np.ndarray
+    heights: np.ndarray
+    inside_building: np.ndarray  # [height, y, x]
+    outside_region: np.ndarray   # [y, x]
+
+    @property
+    def traced(self) -> np.ndarray:
+        return ~self.inside_building & ~self.outside_region[None]
+
+
+def tile_grid(cfg: SceneConfig, geom: SourceGeometry, tile: str) -> TileGrid:
     ckm = cfg.ckm
     sl = tile_slices(ckm, tile)
     y_all, x_all = cell_centres(ckm)
-    y = y_all[sl[0]] if sl else y_all[:0]
-    x = x_all[sl[1]] if sl else x_all[:0]
+    rows = np.arange(len(y_all))[sl[0]] if sl else np.arange(0)
+    cols = np.arange(len(x_all))[sl[1]] if sl else np.arange(0)
+    y, x = y_all[rows], x_all[cols]
+    heights = np.asarray(ckm.heights, np.float64)
     yy, xx = np.meshgrid(y, x, indexing="ij")
-    zz = np.full_like(xx, ckm.height_m)
-    indoor = inside_buildings(geom, xx, yy, zz)
-    traced = ~indoor
-    B = len(cfg.base_stations)
-    shape = (B, *xx.shape)
-    gain = np.zeros(shape)
-    los = np.zeros(shape, bool)
-    toa = np.full(shape, np.nan)
-    npaths = np.zeros(shape, np.int32)
-    cells = np.flatnonzero(traced.ravel())
-    if len(cells) and radio is not None:
-        rx = np.column_stack([xx.ravel()[cells], yy.ravel()[cells], zz.ravel()[cells]])
-        tx = np.array([b.position_m for b in cfg.base_stations], np.float64)
-        tx_ori = np.deg2rad(np.array([b.orientation_deg for b in cfg.base_stations], np.float64))
-        p = radio.trace(tx, tx_ori, rx)
-        g = (np.abs(p.a) ** 2).mean(axis=(1, 3)).sum(-1)           # [rx, tx]
-        flat = (slice(None), cells)
-        gain.reshape(B, -1)[flat] = g.T
-        los.reshape(B, -1)[flat] = p.los.any(-1).T
-        npaths.reshape(B, -1)[flat] = p.valid.sum(-1).T
-        # initial=inf: a batch in which no cell has any path has zero paths along the last axis.
-        first = np.min(np.where(p.valid, p.tau_s, np.inf), axis=-1, initial=np.inf)
-        first = np.where(np.isfinite(first), first, np.nan)
-        toa.reshape(B, -1)[flat] = first.T
-    has_path = gain > 0
-    with np.errstate(divide="ignore"):
-        gain_db = np.where(has_path, 10 * np.log10(np.where(has_path, gain, 1.0)), np.nan)
-    toa = np.where(has_path, toa, np.nan)
-    dims = ("bs", "y", "x")
-    ds = xr.Dataset(
-        {
-            "path_gain_db": (dims, gain_db, dict(
-                units="dB", long_name="path gain, incoherent sum over paths, element to element",
-                nan_means=NO_PATH)),
-            "path_loss_db": (dims, -gain_db, dict(units="dB", long_name="path loss (= -path gain)",
-                                                  nan_means=NO_PATH)),
-            "los": (dims, los, dict(long_name="a line-of-sight path exists")),
-            "num_paths": (dims, npaths, dict(units="1", long_name="number of valid paths")),
-            "toa_s": (dims, toa, dict(units="s", long_name="time of arrival (delay of the first path)",
-                                      nan_means=NO_PATH)),
-            "has_path": (dims, has_path, dict(long_name="at least one valid path")),
-            "cell_inside_building": (("y", "x"), indoor, dict(long_name="cell centre inside a building: "
-                                                               "masked, not traced")),
-        },
-        coords={
-            "bs": [b.name for b in cfg.base_stations],
-            "y": ("y", y, dict(units="m", long_name="cell centre north (ENU)")),
-            "x": ("x", x, dict(units="m", long_name="cell centre east (ENU)")),
-            "row": ("y", np.arange(len(y_all))[sl[0]] if sl else np.arange(0), dict(long_name="grid row")),
-            "col": ("x", np.arange(len(x_all))[sl[1]] if sl else np.arange(0), dict(long_name="grid col")),
-        },
-        attrs=dict(tile=tile, height_m=ckm.height_m, cell_size_m=ckm.cell_size_m,
-                   grid_shape=list(ckm.shape), mode="reference (PathSolver at cell centres)",
-                   cells_traced=int(len(cells)), in_scene_tiling=int(sl is not None),
-                   radio_materials="dry (the materials of sunny and night weather)"),
-    )
+    inside = np.stack([inside_buildings(geom, xx, yy, np.full_like(xx, h)) for h in heights]) \
+        if len(y) and len(x) else np.zeros((len(heights), len(y), len(x)), bool)
+    return TileGrid(tile, rows, cols, y, x, heights, inside, outside_region(ckm, x, y))
+
+
+def codebook_weights(cfg: SceneConfig, tx_ant_positions_m: np.ndarray) -> np.ndarray:
+    """The base stations' codebook ``[num_beams, num_tx_ant]`` (the same as the ``kpis`` stage's)."""
+    from simart_pipeline.link.beams import dft_codebook
+
+    array = cfg.base_stations[0].array
+    return dft_codebook(tx_ant_positions_m, speed_of_light / cfg.ofdm.carrier_frequency_hz,
+                        array.rows, array.cols, cfg.codebook.oversampling).weights
+
+
+def reference_moments(radio, cfg: SceneConfig, points: np.ndarray, weights: np.ndarray
+                      ) -> tuple[mom.CellMoments, np.ndarray]:
+    """PathSolver at ``points [N, 3]`` from every base station: moments ``[B, N]`` and the coherent
+    narrowband path gain ``[B, N]`` (antenna-pair mean of ``|sum_p a_p exp(-j 2 pi f_c tau_p)|^2``)."""
+    tx = np.array([b.position_m for b in cfg.base_stations], np.float64)
+    tx_ori = np.deg2rad(np.array([b.orientation_deg for b in cfg.base_stations], np.float64))
+    p = radio.grid_scan(tx, tx_ori, points)
+    a = p.a.astype(np.complex128)                          # [N, r, B, n, P]
+    power = np.mean(np.abs(a) ** 2, axis=(1, 3))            # [N, B, P]
+    tau0 = np.linalg.norm(points[:, None, :] - tx[None], axis=-1) / speed_of_light  # [N, B]
+    angles = np.stack([p.phi_r, p.theta_r, p.phi_t, p.theta_t], axis=-1)  # [N, B, P, 4] (mom.ANGLES)
+    num_beams = weights.shape[0]
+    beam = np.zeros(power.shape + (num_beams,))
+    # Per-path beam gain, in chunks of cells to bound memory: mean_r |sum_n w_bn a_rnp|^2.
+    per_cell = max(1, BEAM_CHUNK_BYTES // max(1, 16 * a[0].size * num_beams))
+    for s in range(0, len(points), per_cell):
+        y = np.einsum("kn,irbnp->irbpk", weights, a[s:s + per_cell])
+        beam[s:s + per_cell] = np.mean(y.real**2 + y.imag**2, axis=1)
+    m = mom.path_moments(power.transpose(1, 0, 2), p.tau_s.transpose(1, 0, 2),
+                         p.valid.transpose(1, 0, 2), p.los.transpose(1, 0, 2),
+                         angles.transpose(1, 0, 2, 3), tau0.T, beam.transpose(1, 0, 2, 3))
+    phase = np.exp(-2j * np.pi * cfg.ofdm.carrier_frequency_hz * np.where(p.valid, p.tau_s, 0.0))
+    h = np.sum(a * phase[:, None, :, None, :], axis=-1)     # [N, r, B, n]
+    coherent = np.mean(np.abs(h) ** 2, axis=(1, 3)).T        # [B, N]
+    return m, coherent
+
+
+def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, tx_ant_positions_m
+                 ) -> mom.CellMoments:
+    """One shoot-and-bounce pass per base station over the tile's planes: moments ``[B, H, y, x]``."""
+    from simart_pipeline.ckm.one_pass import one_pass_moments
+
+    per_bs = []
+    for b in cfg.base_stations:
+        per_bs.append(one_pass_moments(
+            radio, np.asarray(b.position_m, np.float64), np.deg2rad(np.asarray(b.orientation_deg, np.float64)),
+            grid.x, grid.y, grid.heights, num_rays=cfg.ckm.num_rays, max_depth=cfg.ray_tracing.max_depth,
+            codebook=weights, tx_ant_positions_m=tx_ant_positions_m,
+            min_hits_for_spread=cfg.ckm.min_hits_for_spread))
+    stacked = {}
+    for f in mom.CellMoments.__dataclass_fields__:
+        vals = [getattr(m, f) for m in per_bs]
+        stacked[f] = None if vals[0] is None else np.stack(vals)
+    return mom.CellMoments(**stacked)
+
+
+def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str) -> xr.Dataset:
+    """Every layer of tile ``tile`` over (bs, height, y, x) and (height, y, x); ``radio`` (a
+    ``RadioScene``) may be None when the tile has no cell to trace."""
+    from simart_pipeline.ckm.link_layers import link_layers
+
+    grid = tile_grid(cfg, geom, tile)
+    B, H = len(cfg.base_stations), len(grid.heights)
+    shape = (B, H, len(grid.y), len(grid.x))
+    traced = grid.traced
+    n_traced = int(traced.sum())
+    num_beams = cfg.base_stations[0].array.num_antennas * cfg.codebook.oversampling**2
+    m = mom.CellMoments.zeros(shape, num_beams)
+    coherent = np.zeros(shape)
+    if n_traced:
+        if radio is None:
+            raise ValueError(f"tile {tile}: {n_traced} cells to trace but no radio scene given")
+        tx_ant = radio.array_positions_m("tx")
+        weights = codebook_weights(cfg, tx_ant)
+        num_beams = weights.shape[0]
+        if cfg.ckm.mode == "reference":
+            hh, yy, xx = np.meshgrid(grid.heights, grid.y, grid.x, indexing="ij")
+            pts = np.column_stack([xx[traced], yy[traced], hh[traced]])
+            mt, coh = reference_moments(radio, cfg, pts, weights)
+            m = mom.CellMoments.zeros(shape, num_beams)
+            for f in mom.CellMoments.__dataclass_fields__:
+                getattr(m, f)[:, traced] = getattr(mt, f)
+            coherent[:, traced] = coh
+        else:
+            m = fast_moments(radio, cfg, grid, weights, tx_ant)
+            coherent[:] = np.nan
+    tx = np.array([b.position_m for b in cfg.base_stations], np.float64)
+    hh, yy, xx = np.meshgrid(grid.heights, grid.y, grid.x, indexing="ij")
+    centre = np.stack([xx, yy, hh], -1)
+    m.tau0_s = np.linalg.norm(centre[None] - tx[:, None, None, None, :], axis=-1) / speed_of_light
+    # Masked cells hold nothing, whatever a solver deposited there.
+    for f in mom.CellMoments.__dataclass_fields__:
+        v = getattr(m, f)
+        if v is not None and f != "tau0_s":
+            v[:, ~traced] = np.inf if f == "min_delay_s" else 0
+    layers = mom.layers_from_moments(m, cfg.ckm.min_hits_for_spread if cfg.ckm.mode == "fast" else 1)
+    has = layers["has_path"]
+    coh_ok = has & (coherent > 0)
+    layers["path_gain_coherent_db"] = np.where(coh_ok, 10 * np.log10(np.where(coh_ok, coherent, 1.0)), np.nan)
+    power_dbm = np.array([b.power_dbm for b in cfg.base_stations])[:, None, None, None]
+    layers["rx_power_dbm"] = power_dbm + layers["path_gain_db"]
+    ds = layers_dataset(layers, cfg, grid, B)
+    ds = ds.merge(link_layers(cfg, m.beam_power, has, traced))
+    ds.attrs.update(tile=tile, mode=cfg.ckm.mode, cells_traced=n_traced,
+                    in_scene_tiling=int(tile_slices(cfg.ckm, tile) is not None))
     return ds
+
+
+def layers_dataset(layers: dict, cfg: SceneConfig, grid: TileGrid, B: int) -> xr.Dataset:
+    d4 = ("bs", "height", "y", "x")
+    data = {}
+    for name, v in layers.items():
+        attrs = dict(mom.LAYER_ATTRS.get(name, {}))
+        if name == "path_gain_coherent_db":
+            attrs = dict(units="dB", long_name="path gain, coherent sum over paths at the carrier "
+                         "frequency (antenna-pair mean); reference mode only")
+            attrs["nan_means"] = MASKED + "; always in fast mode (a ray tube carries no phase)"
+        elif name == "rx_power_dbm":
+            attrs = dict(units="dBm", long_name="received power per antenna element: transmit power "
+                         "plus path gain (no beamforming gain)")
+        if name == "beam_gain_db":
+            data[name] = (d4 + ("beam",), v.astype(np.float32), {**attrs, "nan_means": MASKED})
+            continue
+        if v.dtype.kind == "f":
+            attrs.setdefault("nan_means", MASKED + ("; or too few rays/paths for a stable value"
+                                                    if name in mom.SPREAD_NAMES.values() else ""))
+            v = v.astype(np.float64 if name.endswith("_s") else np.float32)
+        data[name] = (d4, v, attrs)
+    if "beam_gain_db" in layers:
+        data_coords_beam = np.arange(layers["beam_gain_db"].shape[-1])
+    data["cell_inside_building"] = (("height", "y", "x"), grid.inside_building,
+                                    dict(long_name="cell centre inside a building: masked, not traced"))
+    data["cell_outside_region"] = (("y", "x"), grid.outside_region,
+                                   dict(long_name="cell centre outside the region of interest: masked, not traced"))
+    coords = map_coords(cfg, grid)
+    if "beam_gain_db" in layers:
+        coords["beam"] = ("beam", data_coords_beam, dict(long_name="codebook beam index"))
+    return xr.Dataset(data, coords=coords)
+
+
+def map_coords(cfg: SceneConfig, grid: TileGrid) -> dict:
+    return {
+        "bs": [b.name for b in cfg.base_stations],
+        "height": ("height", grid.heights, dict(units="m", long_name="receiver height above the ENU origin")),
+        "y": ("y", grid.y, dict(units="m", long_name="cell centre north (ENU)")),
+        "x": ("x", grid.x, dict(units="m", long_name="cell centre east (ENU)")),
+        "row": ("y", grid.rows, dict(long_name="grid row")),
+        "col": ("x", grid.cols, dict(long_name="grid column")),
+    }

@@ -14,7 +14,12 @@ without conjugation.
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import NamedTuple
+
 import numpy as np
+from scipy.constants import speed_of_light
+
 from simart_pipeline import frames
 
 
@@ -48,21 +53,43 @@ def _spacing_wavelengths(coords_m: np.ndarray, count: int, wavelength_m: float, 
     return float(steps[0]) / wavelength_m
 
 
+class DftCodebook(NamedTuple):
+    """A DFT codebook: precoders and where they point (array frame, boresight +x)."""
+
+    weights: np.ndarray            # [B, N] complex128, unit-norm precoders
+    direction_cosines: np.ndarray  # [B, 2] float64, (u_y, u_z) of each beam
+    visible: np.ndarray            # [B] bool, u_y^2 + u_z^2 <= 1
+    directions: np.ndarray         # [B, 3] float64 unit vectors; NaN rows where not visible
+
+
+def upa_steering_vectors(ant_positions_m, directions, wavelength_m: float) -> np.ndarray:
+    """Array response ``a_n(d) = exp(+j 2 pi/lambda p_n . d)`` (Sionna RT sign, module docstring).
+
+    ``ant_positions_m``: ``[N, 3]``, m, array frame; ``directions``: ``[..., 3]`` unit vectors (or
+    any vectors: direction cosines with a zero x for beams beyond end-fire); ``wavelength_m``: m.
+    Returns ``[..., N]`` complex128, unit modulus per element.
+    """
+    pos = np.asarray(ant_positions_m, dtype=np.float64)
+    d = np.asarray(directions, dtype=np.float64)
+    return np.exp(1j * (2.0 * np.pi / wavelength_m) * (d @ pos.T))
+
+
 def dft_codebook(ant_positions_m, wavelength_m: float, rows: int, cols: int,
-                 oversampling: int = 1) -> tuple[np.ndarray, np.ndarray]:
+                 oversampling: int = 1, visible_only: bool = False) -> DftCodebook:
     """DFT beams of a ``rows x cols`` planar array in the y-z plane, boresight +x.
 
     - ``ant_positions_m``: ``[N, 3]``, m, in the array's own frame (dataset ``tx_ant_position_m``);
-    - ``wavelength_m``: carrier wavelength, m; ``oversampling``: O per axis (1 = orthogonal beams).
+    - ``wavelength_m``: carrier wavelength, m; ``oversampling``: O per axis (1 = orthogonal beams);
+    - ``visible_only``: drop beams with ``u_y^2 + u_z^2 > 1`` (no real direction).
 
-    Beams sit on the product grid of :func:`_axis_grid` direction cosines ``(u_y, u_z)``;
-    invisible ones (``u_y^2 + u_z^2 > 1``) are dropped. Order: ``u_y`` index major, ``u_z``
-    minor. With 8 x 8 half-wavelength elements and O = 1 that leaves 52 of the 64 DFT beams
-    (the 12 dropped are the corners of the grid, beyond end-fire).
+    Beams sit on the product grid of :func:`_axis_grid` direction cosines ``(u_y, u_z)``, order
+    ``u_y`` index major, ``u_z`` minor: ``rows * cols * O**2`` beams (64 for 8 x 8, O = 1; with
+    O = 1 and half-wavelength spacing they form a unitary basis). With 8 x 8 half-wavelength
+    elements 12 of the 64 lie beyond end-fire (``visible`` false): they remain valid precoders
+    whose main lobe is outside visible space.
 
-    Returns ``weights [B, N]`` complex128, unit-norm precoders ``exp(-j 2 pi/lambda p_n . d_b) /
-    sqrt(N)`` (sign convention in the module docstring), and ``directions [B, 3]``, unit vectors
-    ``(sqrt(1 - u_y^2 - u_z^2), u_y, u_z)`` in the array's frame.
+    Weights are unit-norm precoders ``w_n = exp(-j 2 pi/lambda (p_y u_y + p_z u_z)) / sqrt(N)``
+    (the conjugate of :func:`upa_steering_vectors` towards a visible beam's direction).
     """
     pos = np.asarray(ant_positions_m, dtype=np.float64)
     if pos.ndim != 2 or pos.shape != (rows * cols, 3):
@@ -71,11 +98,50 @@ def dft_codebook(ant_positions_m, wavelength_m: float, rows: int, cols: int,
     uz = _axis_grid(rows, _spacing_wavelengths(pos[:, 2], rows, wavelength_m, "z"), oversampling)
     uy, uz = (g.ravel() for g in np.meshgrid(uy, uz, indexing="ij"))
     visible = uy**2 + uz**2 <= 1.0
-    uy, uz = uy[visible], uz[visible]
-    directions = np.stack([np.sqrt(1.0 - uy**2 - uz**2), uy, uz], axis=-1)
-    phase = (2.0 * np.pi / wavelength_m) * (directions @ pos.T)  # [B, N], rad
-    weights = np.exp(-1j * phase) / np.sqrt(pos.shape[0])
-    return weights, directions
+    if visible_only:
+        uy, uz, visible = uy[visible], uz[visible], visible[visible]
+    ux = np.sqrt(np.clip(1.0 - uy**2 - uz**2, 0.0, None))
+    # the array lies in the y-z plane (p_x = 0), so u_x never changes the weights
+    weights = np.conj(upa_steering_vectors(pos, np.stack([ux, uy, uz], -1), wavelength_m))
+    weights /= np.sqrt(pos.shape[0])
+    directions = np.where(visible[:, None], np.stack([ux, uy, uz], -1), np.nan)
+    return DftCodebook(weights, np.stack([uy, uz], -1), visible, directions)
+
+
+def scene_codebook_weights(cfg, tx_ant_positions_m, scene_dir=None) -> np.ndarray:
+    """The scene's base-station precoders ``[B, N]`` as the ``kpis`` stage uses them: the file
+    ``codebook.path`` (relative to ``scene_dir``) or the DFT grid of ``cfg.codebook``
+    (oversampling, visible_only) for the base stations' array. ``cfg``: a ``SceneConfig``;
+    ``tx_ant_positions_m``: ``[N, 3]``, m (``cirs`` ``tx_ant_position_m``)."""
+    pos = np.asarray(tx_ant_positions_m, dtype=np.float64)
+    if cfg.codebook.path is not None:
+        if scene_dir is None:
+            raise ValueError("codebook.path is set: the scene directory is needed to read it")
+        return load_codebook(Path(scene_dir) / cfg.codebook.path, pos.shape[0])
+    array = cfg.base_stations[0].array   # one transmit array per scene (config validator)
+    return dft_codebook(pos, speed_of_light / cfg.ofdm.carrier_frequency_hz, array.rows,
+                        array.cols, cfg.codebook.oversampling, cfg.codebook.visible_only).weights
+
+
+def load_codebook(path, num_tx_antennas: int) -> np.ndarray:
+    """Precoders ``[B, num_tx_antennas]`` complex128 from a ``.npy`` file (config
+    ``codebook.path``); each row must have unit norm (the transmit power is the station's)."""
+    path = Path(path)
+    try:
+        w = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path}: not a readable .npy codebook: {exc}") from None
+    if w.ndim != 2 or w.shape[1] != num_tx_antennas or w.shape[0] < 1:
+        raise ValueError(f"{path}: codebook must be [num_beams, {num_tx_antennas}], got {w.shape}")
+    w = w.astype(np.complex128)
+    if not np.isfinite(w).all():
+        raise ValueError(f"{path}: codebook holds NaN or inf")
+    norms = np.linalg.norm(w, axis=1)
+    bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-6)
+    if bad.size:
+        raise ValueError(f"{path}: precoders must have unit norm; beam {bad[0]} has norm "
+                         f"{norms[bad[0]]:.6g} ({bad.size} beams off)")
+    return w
 
 
 def beamformed_channel(H, weights) -> np.ndarray:

@@ -15,6 +15,8 @@ Dataset layout (``trajectory`` asset):
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import xarray as xr
 from scipy.interpolate import CubicHermiteSpline, CubicSpline
@@ -63,11 +65,22 @@ def evaluate_waypoints(platform: Platform, t_s: np.ndarray) -> dict[str, np.ndar
             "orientation_xyzw": quat, "angular_velocity_radps": ang}
 
 
-def build_trajectory(cfg: SceneConfig) -> xr.Dataset:
+def evaluate_platform(platform: Platform, t_ns: np.ndarray, scene_dir: Path | None) -> dict[str, np.ndarray]:
+    """A platform's poses at ``t_ns``: from its waypoints, or replayed from its recording."""
+    if platform.trajectory.kind == "replay":
+        if scene_dir is None:
+            raise ValueError(f"platform {platform.name}: a replayed trajectory needs the scene directory")
+        from simart_pipeline.mobility import replay
+
+        rec = replay.read_csv(Path(scene_dir) / platform.trajectory.path)
+        return replay.resample(rec, t_ns, platform.trajectory.time_offset_s)
+    return evaluate_waypoints(platform, clock.ns_to_seconds(t_ns))
+
+
+def build_trajectory(cfg: SceneConfig, scene_dir: str | Path | None = None) -> xr.Dataset:
     """Sample every platform's trajectory at the pose rate of the shared clock."""
     t_ns = clock.sample_times_ns(cfg.clock.duration_s, cfg.clock.pose_rate_hz)
-    t_s = clock.ns_to_seconds(t_ns)
-    per = [evaluate_waypoints(p, t_s) for p in cfg.platforms]
+    per = [evaluate_platform(p, t_ns, scene_dir) for p in cfg.platforms]
     names = [p.name for p in cfg.platforms]
 
     def stack(key, comp):
@@ -101,7 +114,10 @@ def build_trajectory(cfg: SceneConfig) -> xr.Dataset:
     ds["angular_velocity_radps"].attrs["frame_id"] = "<platform>/base_link"
     ds.attrs.update(frame_id=frames.WORLD, quaternion_order=frames.QUATERNION_ORDER,
                     pose_rate_hz=cfg.clock.pose_rate_hz,
-                    model="cubic spline through waypoints, level platform heading along velocity")
+                    model="; ".join(f"{p.name}: " + ("replayed from " + p.trajectory.path
+                                                     if p.trajectory.kind == "replay" else
+                                                     "cubic spline through waypoints, level, heading "
+                                                     "along velocity") for p in cfg.platforms))
     return ds
 
 

@@ -1,44 +1,47 @@
 """Sionna RT PathSolver, called one way: load a radio scene, place devices, trace, sort paths.
 
-Everything the project traces goes through :class:`RadioScene.trace`, which batches receivers into
-as few solver calls as ``ray_tracing.max_receivers_per_call`` allows, runs the solver in its
-deterministic mode with the configured seed, and returns paths sorted per (receiver, transmitter):
-valid first, then by delay, then by interaction sequence, so that two runs compare entry by entry.
+Everything the project traces goes through :meth:`RadioScene.trace`. It batches receivers into as
+few solver calls as memory allows (the deterministic solver holds about 48 B per sample, bounce and
+receiver: :func:`receivers_per_call`), runs ``PathSolver(deterministic=True)`` with the configured
+seed, and returns the paths sorted per (receiver, transmitter): valid first, then by delay, then by
+interaction sequence, so that two runs compare entry by entry.
+
+Entries that hold no path (``valid`` false) are filled, never left as Sionna leaves them: ``a = 0``,
+``tau_s = -1`` (an impossible delay), zero angles, Doppler and interaction points.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import hashlib
+import json
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
 
 from simart_pipeline import engine
 from simart_pipeline.config import Array, SceneConfig
+from simart_pipeline.radio import materials
 
-# Weather changes radio materials (first version): rain wets the ground. ITU-R P.2040-3 Table 3
-# gives wet_ground for 1-10 GHz; the wet-facade material is the ray-tracing issue's refinement.
-WEATHER_MATERIAL_OVERRIDES: dict[str, dict[str, str]] = {
-    "sunny": {},
-    "night": {},
-    "rainy": {"medium_dry_ground": "wet_ground", "very_dry_ground": "wet_ground"},
-}
 RX_NEAR_TX_M = 0.01  # Sionna RT silently drops the LoS path of a receiver this close to a transmitter
+INVALID_DELAY_S = -1.0
+SOLVER_BYTES_PER_SAMPLE_BOUNCE_RX = 48  # measured: 100 rx x 1e5 samples: 0.46 / 1.2 / 2.3 GB at depth 1 / 3 / 6
 
 
 @dataclass
 class TracedPaths:
-    """Sorted paths of ``num_rx`` receivers and ``num_tx`` transmitters (numpy, float32 as Sionna)."""
+    """Sorted paths of ``num_rx`` receivers and ``num_tx`` transmitters (numpy)."""
 
     a: np.ndarray            # [num_rx, rx_ant, num_tx, tx_ant, path] complex64
-    tau_s: np.ndarray        # [num_rx, num_tx, path] float64, NaN where invalid
-    theta_t: np.ndarray      # [num_rx, num_tx, path] rad, world frame; NaN where invalid
+    tau_s: np.ndarray        # [num_rx, num_tx, path] float64; -1 where invalid
+    theta_t: np.ndarray      # [num_rx, num_tx, path] float32 rad, world frame; 0 where invalid
     phi_t: np.ndarray
     theta_r: np.ndarray
     phi_r: np.ndarray
-    doppler_hz: np.ndarray   # [num_rx, num_tx, path]
+    doppler_hz: np.ndarray   # [num_rx, num_tx, path] float32
     interaction: np.ndarray  # [num_rx, num_tx, depth, path] uint8
     valid: np.ndarray        # [num_rx, num_tx, path] bool
+    vertices_m: np.ndarray | None = None  # [num_rx, num_tx, depth, path, 3] float32, if asked for
 
     @property
     def los(self) -> np.ndarray:
@@ -54,8 +57,20 @@ def sionna_array(array: Array):
                           pattern=array.pattern, polarization=array.polarization)
 
 
+def receivers_per_call(cfg: SceneConfig) -> int:
+    """Receivers per PathSolver call: the configured cap, lowered to fit the memory budget."""
+    rt_cfg = cfg.ray_tracing
+    per_rx = SOLVER_BYTES_PER_SAMPLE_BOUNCE_RX * max(rt_cfg.max_depth, 1) * rt_cfg.samples_per_src
+    fit = int(rt_cfg.max_solver_memory_gib * 2**30 // per_rx)
+    return max(1, min(rt_cfg.max_receivers_per_call, fit))
+
+
 class RadioScene:
-    """A Sionna RT scene loaded once, with the config's frequency, arrays and weather materials."""
+    """A Sionna RT scene loaded once, with the config's frequency, arrays and weather materials.
+
+    :param scene_xml: the radio mesh (Mitsuba XML); None for an empty scene (free space).
+    :param weather: rain swaps dry materials for wet ones (:mod:`simart_pipeline.radio.materials`).
+    """
 
     def __init__(self, scene_xml: str | Path | None, cfg: SceneConfig, weather: str = "sunny"):
         engine.init()
@@ -63,28 +78,29 @@ class RadioScene:
 
         self.cfg = cfg
         self.weather = weather
+        self.scene_xml = Path(scene_xml) if scene_xml else None
         self.scene = rt.load_scene(str(scene_xml), merge_shapes=False) if scene_xml else rt.load_scene()
         self.scene.frequency = cfg.ofdm.carrier_frequency_hz
         self.scene.bandwidth = cfg.ofdm.bandwidth_hz
         self.scene.tx_array = sionna_array(cfg.base_stations[0].array)
         self.scene.rx_array = sionna_array(cfg.platforms[0].array)
         self.material_overrides = self._apply_weather(weather)
+        self.solver = rt.PathSolver(deterministic=True)
 
     def _apply_weather(self, weather: str) -> dict[str, str]:
-        import sionna.rt as rt
-
-        overrides = WEATHER_MATERIAL_OVERRIDES[weather]
+        swapped: dict[str, object] = {}
         applied = {}
-        new = {}
         for name, obj in sorted(self.scene.objects.items()):
-            itu = getattr(obj.radio_material, "itu_type", None)
-            if itu in overrides:
-                target = overrides[itu]
-                if target not in new:
-                    new[target] = rt.ITURadioMaterial(f"itu_{target}_{weather}", target,
-                                                      thickness=self.cfg.materials.thickness_m)
-                obj.radio_material = new[target]
-                applied[name] = f"{itu} -> {target}"
+            base = materials.material_name(obj.radio_material)
+            target = materials.weather_material(base, weather)
+            if target == base:
+                continue
+            if target not in swapped:
+                swapped[target] = materials.sionna_material(
+                    target, self.cfg.ofdm.carrier_frequency_hz, self.cfg.materials.thickness_m,
+                    suffix=f"_{weather}")
+            obj.radio_material = swapped[target]
+            applied[name] = f"{base} -> {target}"
         return applied
 
     @property
@@ -97,66 +113,112 @@ class RadioScene:
         return np.array(arr.positions(self.wavelength_m)).T.astype(np.float64)
 
     def radio_materials(self) -> dict[str, str]:
-        return {name: getattr(obj.radio_material, "itu_type", obj.radio_material.name)
+        """Radio material name of every scene object, after the weather's swaps."""
+        return {name: materials.material_name(obj.radio_material)
                 for name, obj in sorted(self.scene.objects.items())}
+
+    def material_properties(self) -> dict[str, tuple[float, float, float]]:
+        """(relative permittivity, conductivity S/m, thickness m) of every object at the frequency."""
+        out = {}
+        for name, obj in sorted(self.scene.objects.items()):
+            m = obj.radio_material
+            out[name] = tuple(float(np.array(v).ravel()[0]) for v in
+                              (m.relative_permittivity, m.conductivity, m.thickness))
+        return out
+
+    def content_sha256(self) -> str:
+        """Hash of everything a trace depends on except the device positions: the radio mesh files,
+        every object's material properties at the carrier frequency, frequency, bandwidth, arrays
+        and solver settings. Two weathers with equal hashes give equal paths."""
+        h = hashlib.sha256()
+        if self.scene_xml is not None:
+            root = self.scene_xml.parent
+            for f in sorted(p for p in root.rglob("*") if p.is_file()):
+                h.update(str(f.relative_to(root)).encode())
+                h.update(hashlib.sha256(f.read_bytes()).digest())
+        import sionna.rt
+
+        cfg = self.cfg
+        h.update(json.dumps({
+            "materials": {k: [repr(x) for x in v] for k, v in self.material_properties().items()},
+            "frequency_hz": cfg.ofdm.carrier_frequency_hz, "bandwidth_hz": cfg.ofdm.bandwidth_hz,
+            "tx_array": cfg.base_stations[0].array.model_dump(),
+            "rx_array": cfg.platforms[0].array.model_dump(),
+            "solver": cfg.ray_tracing.model_dump(exclude={"max_receivers_per_call", "max_solver_memory_gib"}),
+            "sionna_rt": sionna.rt.__version__,
+        }, sort_keys=True).encode())
+        return h.hexdigest()
 
     def trace(self, tx_positions: np.ndarray, tx_orientations_rad: np.ndarray,
               rx_positions: np.ndarray, rx_velocities: np.ndarray | None = None,
               rx_orientations_rad: np.ndarray | None = None,
-              tx_velocities: np.ndarray | None = None) -> TracedPaths:
+              tx_velocities: np.ndarray | None = None, with_vertices: bool = False) -> TracedPaths:
         """Trace all transmitters to all receivers.
 
         :param tx_positions: [num_tx, 3] m, world; ``tx_orientations_rad`` [num_tx, 3] (yaw, pitch, roll)
         :param rx_positions: [num_rx, 3] m; ``rx_velocities`` [num_rx, 3] m/s;
             ``rx_orientations_rad`` [num_rx, 3]
+        :param with_vertices: also return every path's interaction points
         """
         import sionna.rt as rt
 
         rt_cfg = self.cfg.ray_tracing
-        solver = rt.PathSolver()
-        num_rx = len(rx_positions)
-        if num_rx == 0:
-            raise ValueError("no receiver to trace")
-        for i, (p, o) in enumerate(zip(tx_positions, tx_orientations_rad)):
-            v = None if tx_velocities is None else tx_velocities[i]
-            self.scene.add(rt.Transmitter(f"tx{i}", position=[float(c) for c in p],
-                                          orientation=[float(c) for c in o],
-                                          velocity=None if v is None else [float(c) for c in v]))
+        num_rx, num_tx = len(rx_positions), len(tx_positions)
+        if num_rx == 0 or num_tx == 0:
+            raise ValueError("nothing to trace: no receiver or no transmitter")
+
+        def vec(v):
+            return [float(c) for c in v]
+
+        for i in range(num_tx):
+            self.scene.add(rt.Transmitter(
+                f"tx{i}", position=vec(tx_positions[i]), orientation=vec(tx_orientations_rad[i]),
+                velocity=None if tx_velocities is None else vec(tx_velocities[i])))
         chunks = []
         try:
-            step = rt_cfg.max_receivers_per_call
+            step = receivers_per_call(self.cfg)
             for start in range(0, num_rx, step):
                 idx = range(start, min(start + step, num_rx))
                 for i in idx:
                     kw = {}
                     if rx_velocities is not None:
-                        kw["velocity"] = [float(c) for c in rx_velocities[i]]
+                        kw["velocity"] = vec(rx_velocities[i])
                     if rx_orientations_rad is not None:
-                        kw["orientation"] = [float(c) for c in rx_orientations_rad[i]]
-                    self.scene.add(rt.Receiver(f"rx{i}", position=[float(c) for c in rx_positions[i]], **kw))
-                paths = solver(self.scene, max_depth=rt_cfg.max_depth,
-                               max_num_paths_per_src=rt_cfg.max_num_paths_per_src,
-                               samples_per_src=rt_cfg.samples_per_src, synthetic_array=True,
-                               los=rt_cfg.los, specular_reflection=rt_cfg.specular_reflection,
-                               diffuse_reflection=rt_cfg.diffuse_reflection,
-                               refraction=rt_cfg.refraction, seed=rt_cfg.seed)
-                chunks.append(_to_numpy(paths, len(tx_positions), len(idx), rt_cfg.max_depth,
-                                        self.scene.rx_array.num_ant, self.scene.tx_array.num_ant))
+                        kw["orientation"] = vec(rx_orientations_rad[i])
+                    self.scene.add(rt.Receiver(f"rx{i}", position=vec(rx_positions[i]), **kw))
+                paths = self.solver(
+                    self.scene, max_depth=rt_cfg.max_depth,
+                    max_num_paths_per_src=rt_cfg.max_num_paths_per_src,
+                    samples_per_src=rt_cfg.samples_per_src, synthetic_array=True, los=rt_cfg.los,
+                    specular_reflection=rt_cfg.specular_reflection,
+                    diffuse_reflection=rt_cfg.diffuse_reflection, refraction=rt_cfg.refraction,
+                    diffraction=rt_cfg.diffraction, edge_diffraction=rt_cfg.edge_diffraction,
+                    seed=rt_cfg.seed)
+                chunks.append(_to_numpy(paths, num_tx, len(idx), rt_cfg.max_depth,
+                                        self.scene.rx_array.num_ant, self.scene.tx_array.num_ant,
+                                        with_vertices))
                 for i in idx:
                     self.scene.remove(f"rx{i}")
         finally:
-            for i in range(len(tx_positions)):
+            for i in range(num_tx):
                 self.scene.remove(f"tx{i}")
             for name in list(self.scene.receivers):
                 self.scene.remove(name)
         return _sort(_concat(chunks))
 
+    def grid_scan(self, tx_positions: np.ndarray, tx_orientations_rad: np.ndarray,
+                  grid_points_m: np.ndarray) -> TracedPaths:
+        """Fixed transmitters and a grid of virtual receivers (static, default orientation): the
+        CKM generator's reference mode. ``grid_points_m`` [num_points, 3]."""
+        return self.trace(tx_positions, tx_orientations_rad, np.asarray(grid_points_m, np.float64))
 
-def _to_numpy(paths, num_tx: int, num_rx: int, max_depth: int, rx_ant: int, tx_ant: int) -> dict[str, np.ndarray]:
-    # Explicit shapes: Sionna squeezes nothing, but a call with no path has zero-size arrays.
+
+def _to_numpy(paths, num_tx: int, num_rx: int, max_depth: int, rx_ant: int, tx_ant: int,
+              with_vertices: bool) -> dict[str, np.ndarray]:
+    # Explicit shapes: a call with no path has zero-size arrays.
     num_paths = np.array(paths.tau).shape[-1]
     shape = (num_rx, num_tx, num_paths)
-    a = np.array(paths.a[0]) + 1j * np.array(paths.a[1])
+    a = np.array(paths.a[0]).astype(np.float64) + 1j * np.array(paths.a[1])
     out = {
         "a": a.astype(np.complex64).reshape(num_rx, rx_ant, num_tx, tx_ant, num_paths),
         "tau_s": np.array(paths.tau).astype(np.float64).reshape(shape),
@@ -171,7 +233,15 @@ def _to_numpy(paths, num_tx: int, num_rx: int, max_depth: int, rx_ant: int, tx_a
     inter = inter.reshape(max_depth, num_rx, num_tx, num_paths) if max_depth else \
         np.zeros((0, num_rx, num_tx, num_paths), np.uint8)
     out["interaction"] = np.moveaxis(inter, 0, 2)  # [rx, tx, depth, path]
+    if with_vertices:
+        v = np.array(paths.vertices).astype(np.float32)
+        v = v.reshape(max_depth, num_rx, num_tx, num_paths, 3) if max_depth else \
+            np.zeros((0, num_rx, num_tx, num_paths, 3), np.float32)
+        out["vertices_m"] = np.moveaxis(v, 0, 2)  # [rx, tx, depth, path, 3]
     return out
+
+
+_FILL = {"valid": False, "a": 0, "interaction": 0, "tau_s": INVALID_DELAY_S}
 
 
 def _concat(chunks: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
@@ -182,8 +252,10 @@ def _concat(chunks: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
         k = n - c["tau_s"].shape[-1]
         d = {}
         for key, v in c.items():
-            fill = {"valid": False, "a": 0, "interaction": 0}.get(key, -1 if key == "tau_s" else 0)
-            d[key] = np.pad(v, [(0, 0)] * (v.ndim - 1) + [(0, k)], constant_values=fill)
+            path_axis = v.ndim - 2 if key == "vertices_m" else v.ndim - 1
+            pad = [(0, 0)] * v.ndim
+            pad[path_axis] = (0, k)
+            d[key] = np.pad(v, pad, constant_values=_FILL.get(key, 0))
         padded.append(d)
     return {key: np.concatenate([c[key] for c in padded], axis=0) for key in padded[0]}
 
@@ -196,19 +268,23 @@ def _sort(d: dict[str, np.ndarray]) -> TracedPaths:
     keys = [inter[:, :, k, :] for k in range(inter.shape[2] - 1, -1, -1)] + [tau, ~valid]
     order = np.lexsort(keys, axis=-1)  # [rx, tx, path]
 
-    def take(v):
-        if v.ndim == 3:  # [rx, tx, path]
-            return np.take_along_axis(v, order, axis=-1)
-        if v.ndim == 4:  # interaction [rx, tx, depth, path]
+    def take(key, v):
+        if key == "a":  # [rx, rx_ant, tx, tx_ant, path]
+            return np.take_along_axis(v, order[:, None, :, None, :], axis=-1)
+        if key == "interaction":  # [rx, tx, depth, path]
             return np.take_along_axis(v, order[:, :, None, :], axis=-1)
-        return np.take_along_axis(v, order[:, None, :, None, :], axis=-1)  # a [rx, rx_ant, tx, tx_ant, path]
+        if key == "vertices_m":  # [rx, tx, depth, path, 3]
+            return np.take_along_axis(v, order[:, :, None, :, None], axis=-2)
+        return np.take_along_axis(v, order, axis=-1)
 
-    valid_s = take(valid)
-    nan = np.float64(np.nan)
-    out = {k: take(v) for k, v in d.items()}
-    for k in ("tau_s", "theta_t", "phi_t", "theta_r", "phi_r", "doppler_hz"):
-        out[k] = np.where(valid_s, out[k], nan).astype(np.float64 if k == "tau_s" else np.float32)
-    out["a"] = np.where(valid_s[:, None, :, None, :], out["a"], 0).astype(np.complex64)
-    out["interaction"] = np.where(valid_s[:, :, None, :], out["interaction"], 0).astype(np.uint8)
-    out["valid"] = valid_s
-    return TracedPaths(**out)
+    out = {k: take(k, v) for k, v in d.items()}
+    vs = out["valid"]
+    out["tau_s"] = np.where(vs, out["tau_s"], INVALID_DELAY_S)
+    for k in ("theta_t", "phi_t", "theta_r", "phi_r", "doppler_hz"):
+        out[k] = np.where(vs, out[k], 0.0).astype(np.float32)
+    out["a"] = np.where(vs[:, None, :, None, :], out["a"], 0).astype(np.complex64)
+    out["interaction"] = np.where(vs[:, :, None, :], out["interaction"], 0).astype(np.uint8)
+    if "vertices_m" in out:
+        out["vertices_m"] = np.where(vs[:, :, None, :, None], out["vertices_m"], 0).astype(np.float32)
+    names = {f.name for f in fields(TracedPaths)}
+    return TracedPaths(**{k: v for k, v in out.items() if k in names})

@@ -30,13 +30,25 @@ class ProjectResource(dg.ConfigurableResource):
         return load_scene_config(self.scene_dir(scene))
 
 
+_LOADED: dict[tuple, object] = {}  # radio scenes loaded in this process (one per scene file, config, weather)
+
+
 class RayTracerResource(dg.ConfigurableResource):
-    """Sionna RT: picks the cuda variant when a GPU is present, LLVM otherwise (engine.init)."""
+    """Sionna RT: picks the cuda variant when a GPU is present, LLVM otherwise (engine.init).
+
+    A radio scene is loaded once per process for each (radio mesh file and its modification time,
+    scene config, weather): the CKM tiles of one scene share one load."""
 
     def load(self, paired_meshes: scene_meshes.SceneMeshes, cfg: SceneConfig, weather: str):
         from simart_pipeline.radio.tracer import RadioScene
 
-        return RadioScene(scene_meshes.radio_scene_file(paired_meshes.root), cfg, weather)
+        xml = scene_meshes.radio_scene_file(paired_meshes.root)
+        key = (str(xml.resolve()), xml.stat().st_mtime_ns, cfg.digest(), weather)
+        if key not in _LOADED:
+            if len(_LOADED) >= 4:
+                _LOADED.pop(next(iter(_LOADED)))
+            _LOADED[key] = RadioScene(xml, cfg, weather)
+        return _LOADED[key]
 
     def variant(self) -> str:
         from simart_pipeline import engine

@@ -1,9 +1,15 @@
 """Source geometry: the ``osm_extract`` asset's dataset, whatever the scene's source.
 
-Features (buildings, roads, ground) are 2D shapes in the local ENU frame, stored as CF contiguous
-ragged arrays (CF 1.8 section 7.5): every polygon ring's nodes one after another along ``node``,
-``node_count`` nodes per feature. Polygons are stored as their exterior ring (holes are a later
-refinement of the OSM reader); roads as their centre line with a width.
+Features are 2D shapes in the local ENU frame (x east, y north, m) with the attributes the mesher
+needs: buildings and building parts (footprint, heights, roof), roads (centre line and width, or
+an area), parking, vegetation, water, and the ground. They are stored as CF contiguous ragged
+arrays (CF 1.8 section 7.5 geometries): every ring's nodes one after another along ``node``,
+``node_count`` nodes per feature, ``part_node_count`` nodes per ring (part) and ``interior_ring``
+saying which rings are holes, so multipolygons with courtyards round-trip exactly.
+
+Building outlines and their parts follow the Simple 3D Buildings convention: an outline whose 3D
+shape its ``building:part`` children carry has ``has_parts`` set and is not extruded; each part
+names its outline in ``parent_id``. :func:`SourceGeometry.volumes` lists what gets extruded.
 """
 
 from __future__ import annotations
@@ -13,30 +19,59 @@ from dataclasses import dataclass, field
 import numpy as np
 import shapely
 import xarray as xr
-from shapely.geometry import LineString, Polygon
+from shapely.geometry import LineString, MultiPolygon, Polygon
 
 from simart_pipeline.config import ProceduralSource, SceneConfig
 
-FEATURE_CLASSES = ("building", "road", "ground")
+FEATURE_CLASSES = ("building", "building_part", "road", "parking", "water", "vegetation", "ground")
+ROOF_SHAPES = ("flat", "gabled", "hipped", "pyramidal", "skillion")
 
 
 @dataclass
 class Feature:
+    """One source feature. Heights in m above the ground plane; NaN where not applicable."""
+
     feature_class: str
-    geometry: Polygon | LineString
+    geometry: Polygon | MultiPolygon | LineString
     source_id: int
     height_m: float = np.nan
     min_height_m: float = np.nan
     width_m: float = np.nan
     radio_material: str = ""
+    roof_shape: str = ""             # buildings and parts: one of ROOF_SHAPES
+    roof_height_m: float = np.nan    # part of height_m; NaN: the mesher's default for the shape
+    roof_across: bool = False        # ridge across the footprint's long side (roof:orientation=across)
+    levels: float = np.nan           # storeys below the roof (building:levels), NaN if untagged
+    parent_id: int = 0               # building parts: the source id of their outline (0: none)
+    has_parts: bool = False          # building outlines whose 3D shape their parts carry
+
+    @property
+    def instance_id(self) -> int:
+        """The id a visual face of this feature carries: a part's outline, else its own."""
+        return self.parent_id or self.source_id
 
 
 @dataclass
 class SourceGeometry:
     features: list[Feature] = field(default_factory=list)
+    origin: tuple[float, float, float] | None = None  # WGS84 latitude, longitude (deg), altitude (m)
+    attribution: str = ""
+    warnings: list[str] = field(default_factory=list)
 
     def of_class(self, cls: str) -> list[Feature]:
         return [f for f in self.features if f.feature_class == cls]
+
+    def volumes(self) -> list[Feature]:
+        """What is extruded: building parts, and building outlines that have no parts."""
+        return [f for f in self.features if f.feature_class == "building_part"
+                or (f.feature_class == "building" and not f.has_parts)]
+
+
+def polygons_of(geom) -> list[Polygon]:
+    """The non-empty polygons of a Polygon, MultiPolygon or collection."""
+    if isinstance(geom, Polygon):
+        return [geom] if not geom.is_empty else []
+    return [g for g in getattr(geom, "geoms", []) if isinstance(g, Polygon) and not g.is_empty]
 
 
 def procedural_layout(src: ProceduralSource, cfg: SceneConfig) -> SourceGeometry:
@@ -48,7 +83,7 @@ def procedural_layout(src: ProceduralSource, cfg: SceneConfig) -> SourceGeometry
     pitch_x, pitch_y = bw + sw, bh + sw
     x0 = -(nx * pitch_x - sw) / 2
     y0 = -(ny * pitch_y - sw) / 2
-    out = SourceGeometry()
+    out = SourceGeometry(origin=(cfg.origin.latitude_deg, cfg.origin.longitude_deg, cfg.origin.altitude_m))
     fid = 1
     for j in range(ny):
         for i in range(nx):
@@ -57,7 +92,7 @@ def procedural_layout(src: ProceduralSource, cfg: SceneConfig) -> SourceGeometry
             poly = shapely.box(cx0 + inset, cy0 + inset, cx0 + bw - inset, cy0 + bh - inset)
             h = float(rng.uniform(*src.building_height_m))
             out.features.append(Feature("building", poly, fid, height_m=round(h, 2), min_height_m=0.0,
-                                        radio_material=cfg.materials.building))
+                                        radio_material=cfg.materials.building, roof_shape="flat"))
             fid += 1
     half_x, half_y = nx * pitch_x / 2, ny * pitch_y / 2
     # Streets: the centre lines between and around blocks, full length.
@@ -78,60 +113,137 @@ def procedural_layout(src: ProceduralSource, cfg: SceneConfig) -> SourceGeometry
     return out
 
 
+def _rings(geom) -> list[tuple[np.ndarray, bool]]:
+    """(coords [n, 2], is_interior) of every ring of a polygonal geometry, or the line itself."""
+    if isinstance(geom, LineString):
+        return [(np.asarray(geom.coords)[:, :2], False)]
+    out = []
+    for poly in polygons_of(geom):
+        out.append((np.asarray(poly.exterior.coords)[:, :2], False))
+        out += [(np.asarray(r.coords)[:, :2], True) for r in poly.interiors]
+    return out
+
+
 def to_dataset(geom: SourceGeometry) -> xr.Dataset:
     """The CF ragged-array dataset of ``geom``."""
-    xs, ys, counts = [], [], []
+    xs, ys, counts, part_counts, interior = [], [], [], [], []
     for f in geom.features:
-        coords = np.asarray(f.geometry.exterior.coords if isinstance(f.geometry, Polygon)
-                            else f.geometry.coords)[:, :2]
-        xs.append(coords[:, 0])
-        ys.append(coords[:, 1])
-        counts.append(len(coords))
+        rings = _rings(f.geometry)
+        for coords, hole in rings:
+            xs.append(coords[:, 0])
+            ys.append(coords[:, 1])
+            part_counts.append(len(coords))
+            interior.append(hole)
+        counts.append(sum(len(c) for c, _ in rings))
     nan_attr = "not applicable to this feature class"
     fs = geom.features
+
+    def col(name, dtype):
+        return np.asarray([getattr(f, name) for f in fs], dtype)
+
+    empty = np.zeros(0)
     ds = xr.Dataset(
         {
-            "node_x_m": ("node", np.concatenate(xs), {"units": "m", "long_name": "node east (ENU)"}),
-            "node_y_m": ("node", np.concatenate(ys), {"units": "m", "long_name": "node north (ENU)"}),
+            "node_x_m": ("node", np.concatenate(xs) if xs else empty,
+                         {"units": "m", "long_name": "node east (ENU)"}),
+            "node_y_m": ("node", np.concatenate(ys) if ys else empty,
+                         {"units": "m", "long_name": "node north (ENU)"}),
             "node_count": ("feature", np.asarray(counts, np.int64),
                            {"long_name": "nodes of each feature, in order along node",
                             "sample_dimension": "node"}),
-            "feature_class": ("feature", np.asarray([f.feature_class for f in fs]),
-                              {"long_name": "semantic class", "flag_values": " ".join(FEATURE_CLASSES)}),
-            "geometry_type": ("feature", np.asarray(["polygon" if isinstance(f.geometry, Polygon)
-                                                     else "line" for f in fs]),
-                              {"long_name": "polygon (closed exterior ring) or line (centre line)"}),
-            "source_id": ("feature", np.asarray([f.source_id for f in fs], np.int64),
-                          {"long_name": "OSM id, or generated id for procedural scenes"}),
-            "height_m": ("feature", np.asarray([f.height_m for f in fs], np.float64),
-                         {"units": "m", "long_name": "top of the extruded footprint above ground",
+            "part_node_count": ("part", np.asarray(part_counts, np.int64),
+                                {"long_name": "nodes of each ring (polygon) or line, in order along node"}),
+            "interior_ring": ("part", np.asarray(interior, np.int8),
+                              {"long_name": "1 where the part is a hole of the polygon before it",
+                               "flag_values": np.array([0, 1], np.int8),
+                               "flag_meanings": "exterior_ring interior_ring"}),
+            "feature_class": ("feature", np.asarray([f.feature_class for f in fs], dtype=str),
+                              {"long_name": "source feature class", "flag_values": " ".join(FEATURE_CLASSES)}),
+            "geometry_type": ("feature", np.asarray(["line" if isinstance(f.geometry, LineString)
+                                                     else "polygon" for f in fs], dtype=str),
+                              {"long_name": "polygon (closed rings, holes flagged) or line (centre line)"}),
+            "source_id": ("feature", col("source_id", np.int64),
+                          {"long_name": "OSM id (ways positive, relations negative), or a generated id"}),
+            "parent_id": ("feature", col("parent_id", np.int64),
+                          {"long_name": "building parts: source_id of their building outline; 0 otherwise"}),
+            "has_parts": ("feature", col("has_parts", bool),
+                          {"long_name": "building outline whose 3D shape its building parts carry"}),
+            "height_m": ("feature", col("height_m", np.float64),
+                         {"units": "m", "long_name": "top of the building (roof included) above ground",
                           "nan_means": nan_attr}),
-            "min_height_m": ("feature", np.asarray([f.min_height_m for f in fs], np.float64),
+            "min_height_m": ("feature", col("min_height_m", np.float64),
                              {"units": "m", "long_name": "bottom of the extruded footprint",
                               "nan_means": nan_attr}),
-            "width_m": ("feature", np.asarray([f.width_m for f in fs], np.float64),
-                        {"units": "m", "long_name": "road width", "nan_means": nan_attr}),
-            "radio_material": ("feature", np.asarray([f.radio_material for f in fs]),
-                               {"long_name": "ITU-R P.2040 radio material"}),
+            "roof_height_m": ("feature", col("roof_height_m", np.float64),
+                              {"units": "m", "long_name": "roof height (part of height_m)",
+                               "nan_means": "not a building, or untagged (the mesher's default)"}),
+            "roof_shape": ("feature", np.asarray([f.roof_shape for f in fs], dtype=str),
+                           {"long_name": "roof shape", "flag_values": " ".join(ROOF_SHAPES)}),
+            "roof_across": ("feature", col("roof_across", bool),
+                            {"long_name": "ridge across the long side of the footprint"}),
+            "levels": ("feature", col("levels", np.float64),
+                       {"units": "1", "long_name": "storeys below the roof (building:levels)",
+                        "nan_means": "untagged or not a building"}),
+            "width_m": ("feature", col("width_m", np.float64),
+                        {"units": "m", "long_name": "road width", "nan_means": nan_attr + " (or a road area)"}),
+            "radio_material": ("feature", np.asarray([f.radio_material for f in fs], dtype=str),
+                               {"long_name": "radio material (simart_pipeline.radio.materials)"}),
         },
         coords={"feature": np.arange(len(fs))},
     )
+    if geom.origin is not None:
+        ds.attrs.update(origin_latitude_deg=geom.origin[0], origin_longitude_deg=geom.origin[1],
+                        origin_altitude_m=geom.origin[2])
+    if geom.attribution:
+        ds.attrs["attribution"] = geom.attribution
+    if geom.warnings:
+        ds.attrs["source_warnings"] = "\n".join(geom.warnings)
     return ds
 
 
 def from_dataset(ds: xr.Dataset) -> SourceGeometry:
     """Inverse of :func:`to_dataset`."""
-    ends = np.cumsum(ds["node_count"].values)
-    starts = ends - ds["node_count"].values
     x, y = ds["node_x_m"].values, ds["node_y_m"].values
+    part_counts = ds["part_node_count"].values
+    interior = ds["interior_ring"].values.astype(bool)
+    part_end = np.cumsum(part_counts)
+    part_start = part_end - part_counts
+    counts = ds["node_count"].values
+    part = 0
+    node = 0
+    v = {k: ds[k].values for k in ds.data_vars if ds[k].dims == ("feature",)}
     out = SourceGeometry()
     for i in range(ds.sizes["feature"]):
-        pts = np.column_stack([x[starts[i]:ends[i]], y[starts[i]:ends[i]]])
-        geom = Polygon(pts) if str(ds["geometry_type"].values[i]) == "polygon" else LineString(pts)
+        rings = []
+        end = node + counts[i]
+        while node < end:
+            s, e = part_start[part], part_end[part]
+            rings.append((np.column_stack([x[s:e], y[s:e]]), interior[part]))
+            node = e
+            part += 1
+        if str(v["geometry_type"][i]) == "line":
+            geom = LineString(rings[0][0])
+        else:
+            polys = []
+            for coords, hole in rings:
+                if hole:
+                    polys[-1][1].append(coords)
+                else:
+                    polys.append((coords, []))
+            shapes = [Polygon(s, h) for s, h in polys]
+            geom = shapes[0] if len(shapes) == 1 else MultiPolygon(shapes)
         out.features.append(Feature(
-            str(ds["feature_class"].values[i]), geom, int(ds["source_id"].values[i]),
-            float(ds["height_m"].values[i]), float(ds["min_height_m"].values[i]),
-            float(ds["width_m"].values[i]), str(ds["radio_material"].values[i])))
+            str(v["feature_class"][i]), geom, int(v["source_id"][i]),
+            height_m=float(v["height_m"][i]), min_height_m=float(v["min_height_m"][i]),
+            width_m=float(v["width_m"][i]), radio_material=str(v["radio_material"][i]),
+            roof_shape=str(v["roof_shape"][i]), roof_height_m=float(v["roof_height_m"][i]),
+            roof_across=bool(v["roof_across"][i]), levels=float(v["levels"][i]),
+            parent_id=int(v["parent_id"][i]), has_parts=bool(v["has_parts"][i])))
+    if "origin_latitude_deg" in ds.attrs:
+        out.origin = (float(ds.attrs["origin_latitude_deg"]), float(ds.attrs["origin_longitude_deg"]),
+                      float(ds.attrs["origin_altitude_m"]))
+    out.attribution = str(ds.attrs.get("attribution", ""))
+    out.warnings = [w for w in str(ds.attrs.get("source_warnings", "")).split("\n") if w]
     return out
 
 
@@ -142,20 +254,38 @@ def build_source_geometry(cfg: SceneConfig, scene_dir) -> SourceGeometry:
     if cfg.source.kind == "osm":
         from simart_pipeline.scene.osm import read_osm
         return read_osm(cfg, scene_dir)
-    raise NotImplementedError(
-        f"scene {cfg.name}: source kind 'mesh' is not supported yet (the scene-construction issue adds "
-        "the user-mesh pipeline); use 'procedural' or 'osm'")
+    if cfg.source.kind == "mesh":
+        from simart_pipeline.config import resolve_source_path
+        from simart_pipeline.scene.mesh_import import source_geometry_from_mesh
+        origin = (cfg.origin.latitude_deg, cfg.origin.longitude_deg, cfg.origin.altitude_m)
+        return source_geometry_from_mesh(resolve_source_path(scene_dir, cfg), cfg.source.rules, origin)
+    raise NotImplementedError(f"scene {cfg.name}: unknown source kind {cfg.source.kind!r}")
 
 
 def building_footprints(geom: SourceGeometry) -> list[Polygon]:
-    return [f.geometry for f in geom.of_class("building")]
+    """Footprint polygons of every extruded volume."""
+    return [p for f in geom.volumes() for p in polygons_of(f.geometry)]
 
 
 def inside_buildings(geom: SourceGeometry, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """True where a point lies inside a building's extruded volume (footprint and height band)."""
-    inside = np.zeros(np.shape(x), dtype=bool)
-    for f in geom.of_class("building"):
-        hit = shapely.contains_xy(f.geometry, x, y)
-        lo = 0.0 if np.isnan(f.min_height_m) else f.min_height_m
-        inside |= hit & (z >= lo) & (z <= f.height_m)
-    return inside
+    """True where a point lies inside a building's extruded volume (footprint and height band).
+
+    The band runs from ``min_height_m`` to ``height_m``, roof included: under a pitched roof it is
+    conservative (a point just above the eaves but outside the roof counts as inside).
+    """
+    x, y, z = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float), np.asarray(z, float))
+    inside = np.zeros(x.shape, dtype=bool)
+    vols = geom.volumes()
+    if not vols or x.size == 0:
+        return inside
+    shapes = [f.geometry for f in vols]
+    lo = np.array([0.0 if np.isnan(f.min_height_m) else f.min_height_m for f in vols])
+    hi = np.array([f.height_m for f in vols])
+    pts = shapely.points(x.ravel(), y.ravel())
+    # Spatial index: each point is tested only against the footprints around it.
+    pi, vi = shapely.STRtree(shapes).query(pts, predicate="within")
+    zf = z.ravel()[pi]
+    hit = (zf >= lo[vi]) & (zf <= hi[vi])
+    flat = inside.ravel()
+    flat[pi[hit]] = True
+    return flat.reshape(x.shape)

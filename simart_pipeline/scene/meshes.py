@@ -1,32 +1,36 @@
 """Paired meshes: a visual mesh for the sensor renderer and a radio mesh for Sionna RT, one frame.
 
 - **Visual mesh**: one triangle mesh (``visual/visual.ply``) whose faces carry a semantic class and
-  an instance id (the source feature's id) in ``visual/face_labels.zarr``.
-- **Radio mesh**: one PLY per (semantic class, ITU radio material) under ``radio/meshes/`` and a
-  Mitsuba XML scene ``radio/scene.xml`` with ``itu-radio-material`` BSDFs, loadable by plain
-  ``sionna.rt.load_scene``.
+  an instance id (the OSM id; a building part carries its outline's) in ``visual/face_labels.zarr``.
+  Buildings have their roofs and window frames (:mod:`simart_pipeline.scene.extrude`).
+- **Radio mesh**: the same buildings without facade detail, and the same ground surfaces, one PLY
+  per (semantic class, radio material) under ``radio/meshes/`` and a Mitsuba XML scene
+  ``radio/scene.xml`` whose BSDFs come from :func:`simart_pipeline.radio.materials.bsdf_xml`,
+  loadable by plain ``sionna.rt.load_scene``. Each building is a closed solid of its own (its
+  vertices are not shared with a neighbour's), so every connected part is watertight.
 
-Both come from the same source geometry: buildings are footprints extruded from ``min_height_m``
-to ``height_m``; roads are their centre lines buffered by half their width; the ground is its
-polygon minus roads and building footprints, so no two surfaces overlap.
+Ground surfaces tile the plane z = 0 without overlap, in this order of precedence: building
+footprints, roads (centre lines buffered by half their width, and road areas), parking, water,
+vegetation, and the ground (the scene's extent minus everything else).
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import IntEnum
 from pathlib import Path
-from xml.sax.saxutils import quoteattr
+from xml.sax.saxutils import escape
 
 import numpy as np
 import shapely
 import trimesh
 import xarray as xr
-from shapely.geometry import MultiPolygon, Polygon
+from shapely.geometry import LineString, Polygon
 
 from simart_pipeline import stores
-from simart_pipeline.scene.geometry import SourceGeometry
+from simart_pipeline.scene import extrude
+from simart_pipeline.scene.geometry import SourceGeometry, polygons_of
 
 
 class SemanticClass(IntEnum):
@@ -47,8 +51,14 @@ def semantic_flag_attrs() -> dict:
             "flag_meanings": " ".join(c.name.lower() for c in SemanticClass)}
 
 
-_CLASS_OF_FEATURE = {"building": SemanticClass.BUILDING, "road": SemanticClass.ROAD,
-                     "ground": SemanticClass.GROUND}
+# Source feature class -> (semantic class, radio mesh class name)
+CLASS_OF_FEATURE = {"building": SemanticClass.BUILDING, "building_part": SemanticClass.BUILDING,
+                    "road": SemanticClass.ROAD, "parking": SemanticClass.ROAD,
+                    "water": SemanticClass.WATER, "vegetation": SemanticClass.VEGETATION,
+                    "ground": SemanticClass.GROUND}
+# Flat layers in order of precedence: an earlier one takes the ground from a later one.
+FLAT_LAYERS = ("road", "parking", "water", "vegetation")
+ON_GROUND_M = 0.05  # a volume whose bottom is this close to z = 0 stands on the ground
 
 
 @dataclass
@@ -56,8 +66,9 @@ class SceneMeshes:
     visual: trimesh.Trimesh
     face_class: np.ndarray      # [num_faces] uint8, SemanticClass
     face_instance: np.ndarray   # [num_faces] int64, source feature id
-    radio: dict[tuple[str, str], trimesh.Trimesh]  # (class name, ITU material) -> mesh
+    radio: dict[tuple[str, str], trimesh.Trimesh]  # (class name, radio material) -> mesh
     root: Path | None = None  # the directory it was loaded from, if any
+    info: dict = field(default_factory=dict)  # scene.json, when loaded
 
     @property
     def radio_materials(self) -> list[str]:
@@ -66,110 +77,183 @@ class SceneMeshes:
     def counts(self) -> dict:
         return {"visual_triangles": int(len(self.visual.faces)),
                 "radio_triangles": int(sum(len(m.faces) for m in self.radio.values())),
+                "radio_triangles_per_mesh": {f"{c}_{m}": int(len(mesh.faces))
+                                             for (c, m), mesh in sorted(self.radio.items())},
                 "radio_meshes": len(self.radio), "radio_materials": self.radio_materials,
                 "buildings": int(len(np.unique(self.face_instance[self.face_class == SemanticClass.BUILDING])))}
 
 
-def _polygons(geom) -> list[Polygon]:
-    if isinstance(geom, Polygon):
-        return [geom] if not geom.is_empty else []
-    if isinstance(geom, MultiPolygon):
-        return [g for g in geom.geoms if not g.is_empty]
-    return [g for g in getattr(geom, "geoms", []) if isinstance(g, Polygon) and not g.is_empty]
+class _Chunks:
+    """Triangle soup gathered piecewise, joined once at the end (numpy, no per-piece Trimesh)."""
+
+    def __init__(self):
+        self.v, self.f, self.cls, self.inst = [], [], [], []
+        self.n = 0
+
+    def add(self, vertices, faces, cls, inst):
+        if len(faces) == 0:
+            return
+        self.v.append(np.asarray(vertices, np.float64))
+        self.f.append(np.asarray(faces, np.int64) + self.n)
+        self.cls.append(np.broadcast_to(np.asarray(cls, np.uint8), (len(faces),)))
+        self.inst.append(np.broadcast_to(np.asarray(inst, np.int64), (len(faces),)))
+        self.n += len(vertices)
+
+    def mesh(self) -> trimesh.Trimesh:
+        if not self.f:
+            return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), process=False)
+        return trimesh.Trimesh(np.concatenate(self.v), np.concatenate(self.f), process=False)
+
+    def labels(self) -> tuple[np.ndarray, np.ndarray]:
+        if not self.f:
+            return np.zeros(0, np.uint8), np.zeros(0, np.int64)
+        return np.concatenate(self.cls), np.concatenate(self.inst)
 
 
-def _flat(poly: Polygon, z: float = 0.0) -> trimesh.Trimesh:
-    """Triangulate a polygon (holes included) at height ``z`` with faces pointing up (+z)."""
-    v2, f = trimesh.creation.triangulate_polygon(poly)
-    v = np.column_stack([v2, np.full(len(v2), z)])
-    mesh = trimesh.Trimesh(v, f, process=False)
-    if len(mesh.faces) and mesh.face_normals[:, 2].mean() < 0:
-        mesh.faces = mesh.faces[:, ::-1]
-    return mesh
+def _flat(poly: Polygon) -> tuple[np.ndarray, np.ndarray]:
+    v2, tri = extrude.triangulate(poly)
+    return np.column_stack([v2, np.zeros(len(v2))]), tri
 
 
-def _extrude(poly: Polygon, bottom: float, top: float) -> trimesh.Trimesh:
-    mesh = trimesh.creation.extrude_polygon(poly, top - bottom)
-    mesh.apply_translation([0.0, 0.0, bottom])
-    return mesh
+def _radio_class(feature_class: str) -> str:
+    return {"building_part": "building", "parking": "road"}.get(feature_class, feature_class)
 
 
-def build_meshes(geom: SourceGeometry) -> SceneMeshes:
-    """Extrude buildings, lay roads and ground; label every visual face."""
-    parts: list[tuple[trimesh.Trimesh, int, int, str, str]] = []
-    footprints = []
-    for f in geom.of_class("building"):
-        bottom = 0.0 if np.isnan(f.min_height_m) else f.min_height_m
-        for poly in _polygons(f.geometry.buffer(0)):
-            parts.append((_extrude(poly, bottom, f.height_m), SemanticClass.BUILDING, f.source_id,
-                          "building", f.radio_material))
-            footprints.append(poly)
+def flat_surfaces(geom: SourceGeometry, footprints: list[Polygon]) -> list[tuple[object, Polygon]]:
+    """(feature, polygon) of every ground surface, tiling the plane without overlap.
+
+    Each surface keeps what no building on the ground and no earlier surface (see
+    :data:`FLAT_LAYERS`) took; spatial indexes keep this near-linear in the number of features.
+    """
     grounds = geom.of_class("ground")
     extent = shapely.union_all([g.geometry for g in grounds]) if grounds else None
-    roads_area = []
-    for f in geom.of_class("road"):
-        area = f.geometry.buffer(f.width_m / 2, cap_style="flat")
-        if extent is not None:
-            area = area.intersection(extent)
-        roads_area.append((f, area))
-    # Each road keeps only what no building and no earlier road took, so crossings are laid once;
-    # spatial indexes keep this near-linear in the number of roads.
-    road_polys = [a for _, a in roads_area]
-    road_tree = shapely.STRtree(road_polys)
-    foot_tree = shapely.STRtree(footprints)
-    for i, (f, area) in enumerate(roads_area):
-        earlier = [road_polys[j] for j in road_tree.query(area, predicate="intersects") if j < i]
-        blocking = earlier + [footprints[j] for j in foot_tree.query(area, predicate="intersects")]
-        own = area.difference(shapely.union_all(blocking)) if blocking else area
-        for poly in _polygons(own):
-            parts.append((_flat(poly), SemanticClass.ROAD, f.source_id, "road", f.radio_material))
-    taken = shapely.union_all(footprints + road_polys) if (footprints or road_polys) else Polygon()
-    for f in grounds:
-        for poly in _polygons(f.geometry.difference(taken)):
-            parts.append((_flat(poly), SemanticClass.GROUND, f.source_id, "ground", f.radio_material))
-    if not parts:
+    items = []
+    for cls in FLAT_LAYERS:
+        for f in geom.of_class(cls):
+            if isinstance(f.geometry, LineString):
+                area = f.geometry.buffer(f.width_m / 2, cap_style="round", quad_segs=4)
+            else:
+                area = f.geometry
+            if extent is not None:
+                area = area.intersection(extent)
+            if not area.is_empty:
+                items.append((f, area))
+    areas = [a for _, a in items]
+    out = []
+    tree = shapely.STRtree(areas) if areas else None
+    foot_tree = shapely.STRtree(footprints) if footprints else None
+    for i, (f, area) in enumerate(items):
+        earlier = [areas[j] for j in tree.query(area, predicate="intersects") if j < i]
+        if foot_tree is not None:
+            earlier += [footprints[j] for j in foot_tree.query(area, predicate="intersects")]
+        own = area.difference(shapely.union_all(earlier)) if earlier else area
+        out += [(f, p) for p in polygons_of(own)]
+    taken = shapely.union_all(footprints + areas) if (footprints or areas) else Polygon()
+    for g in grounds:
+        out += [(g, p) for p in polygons_of(g.geometry.difference(taken))]
+    return out
+
+
+def build_meshes(geom: SourceGeometry, *, storey_height_m: float = 3.0,
+                 facade_detail: bool = True) -> SceneMeshes:
+    """Extrude buildings under their roofs, lay the ground surfaces, label every visual face.
+
+    :param storey_height_m: storey height for window rows where ``building:levels`` is untagged
+    :param facade_detail: window frames on the visual mesh
+    """
+    visual = _Chunks()
+    radio: dict[tuple[str, str], _Chunks] = {}
+    walls, storeys, wall_inst = [], [], []
+    footprints, bands, on_ground = [], [], []
+    for f in geom.volumes():
+        bottom = 0.0 if np.isnan(f.min_height_m) else float(f.min_height_m)
+        for poly in polygons_of(f.geometry):
+            solid = extrude.building_solid(poly, bottom, float(f.height_m), f.roof_shape or "flat",
+                                           f.roof_height_m, f.roof_across)
+            visual.add(solid.vertices, solid.faces, SemanticClass.BUILDING, f.instance_id)
+            radio.setdefault(("building", f.radio_material), _Chunks()).add(
+                solid.vertices, solid.faces, SemanticClass.BUILDING, f.instance_id)
+            walls.append(solid.walls)
+            eave = solid.walls[:, 5].min() if len(solid.walls) else bottom
+            levels = f.levels if f.levels == f.levels and f.levels >= 1 else None
+            storey = (eave - bottom) / levels if levels else storey_height_m
+            storeys.append(np.full(len(solid.walls), max(storey, 1.0)))
+            wall_inst.append(np.full(len(solid.walls), f.instance_id, np.int64))
+            footprints.append(poly)
+            bands.append((bottom, float(f.height_m)))
+            on_ground.append(bottom <= ON_GROUND_M)
+    if facade_detail and walls:
+        v, fc, inst = extrude.window_frames(np.concatenate(walls), np.concatenate(storeys),
+                                            np.concatenate(wall_inst), footprints, np.asarray(bands))
+        if len(fc):
+            visual.add(v, fc, SemanticClass.BUILDING, inst)
+    grounded = [p for p, g in zip(footprints, on_ground) if g]
+    for f, poly in flat_surfaces(geom, grounded):
+        v, tri = _flat(poly)
+        cls = CLASS_OF_FEATURE[f.feature_class]
+        visual.add(v, tri, cls, f.source_id)
+        radio.setdefault((_radio_class(f.feature_class), f.radio_material), _Chunks()).add(v, tri, cls, f.source_id)
+    if not visual.f:
         raise ValueError("the source geometry has no building, road or ground to mesh")
-    visual = trimesh.util.concatenate([p[0] for p in parts])
-    face_class = np.concatenate([np.full(len(p[0].faces), p[1], np.uint8) for p in parts])
-    face_instance = np.concatenate([np.full(len(p[0].faces), p[2], np.int64) for p in parts])
-    groups: dict[tuple[str, str], list[trimesh.Trimesh]] = {}
-    for mesh, _, _, cls, mat in parts:
-        groups.setdefault((cls, mat), []).append(mesh)
-    radio = {}
-    for key, meshes in sorted(groups.items()):
-        merged = trimesh.util.concatenate(meshes)
-        merged.merge_vertices()
-        radio[key] = merged
-    return SceneMeshes(visual, face_class, face_instance, radio)
+    face_class, face_instance = visual.labels()
+    return SceneMeshes(visual.mesh(), face_class, face_instance,
+                       {key: c.mesh() for key, c in sorted(radio.items()) if c.f})
 
 
-def radio_scene_xml(radio: dict[tuple[str, str], trimesh.Trimesh], thickness_m: float) -> str:
-    """Mitsuba 3 scene XML with one ``itu-radio-material`` per material (Sionna RT format)."""
+def radio_scene_xml(radio: dict[tuple[str, str], trimesh.Trimesh], thickness_m: float,
+                    frequency_hz: float | None = None, origin: tuple | None = None) -> str:
+    """Mitsuba 3 scene XML: one radio-material BSDF per material (:func:`radio.materials.bsdf_xml`),
+    one PLY shape per (class, material); the world origin as a comment.
+
+    :param frequency_hz: the carrier frequency, needed by materials that are not ITU ones (water,
+        wet facades), whose permittivity and conductivity are written for it
+    """
+    from simart_pipeline.radio import materials
+
+    mats = sorted({m for _, m in radio})
+    custom = [m for m in mats if m not in materials.ITU_MATERIALS]
+    if custom and frequency_hz is None:
+        raise ValueError(f"radio materials {', '.join(custom)} need the carrier frequency")
     lines = ['<scene version="2.1.0">']
-    for mat in sorted({m for _, m in radio}):
-        lines += [f'  <bsdf type="itu-radio-material" id={quoteattr("itu_" + mat)}>',
-                  f'    <string name="type" value={quoteattr(mat)}/>',
-                  f'    <float name="thickness" value="{thickness_m:g}"/>',
-                  '  </bsdf>']
+    if origin is not None:
+        lat, lon, alt = origin
+        lines.append(f"  <!-- world frame: ENU (x east, y north, z up; m) around WGS84 latitude {lat!r} deg, "
+                     f"longitude {lon!r} deg, altitude {alt!r} m -->")
+    if frequency_hz is not None:
+        lines.append(f"  <!-- radio materials at {frequency_hz!r} Hz -->")
+    for mat in mats:
+        lines.append("  " + materials.bsdf_xml(mat, frequency_hz or 0.0, thickness_m))
     for cls, mat in sorted(radio):
         name = f"{cls}_{mat}"
-        lines += [f'  <shape type="ply" id={quoteattr(name)}>',
-                  f'    <string name="filename" value={quoteattr("meshes/" + name + ".ply")}/>',
+        lines += [f'  <shape type="ply" id="{escape(name)}">',
+                  f'    <string name="filename" value="meshes/{escape(name)}.ply"/>',
                   '    <boolean name="face_normals" value="true"/>',
-                  f'    <ref id={quoteattr("itu_" + mat)} name="bsdf"/>',
+                  f'    <ref id="{escape(materials.bsdf_id(mat))}" name="bsdf"/>',
                   '  </shape>']
     lines.append("</scene>")
     return "\n".join(lines) + "\n"
 
 
-def save(meshes: SceneMeshes, out: Path, scene_info: dict, thickness_m: float) -> None:
-    """Write the paired meshes into directory ``out`` (see the module docstring for the layout)."""
+def save(meshes: SceneMeshes, out: Path, scene_info: dict, thickness_m: float,
+         frequency_hz: float | None = None) -> None:
+    """Write the paired meshes into directory ``out`` (see the module docstring for the layout).
+
+    :param frequency_hz: carrier frequency for the radio materials; default
+        ``scene_info["carrier_frequency_hz"]`` when present
+    :param scene_info: written to ``scene.json`` with the mesh counts; its ``origin``
+        (``latitude_deg``, ``longitude_deg``, ``altitude_m``) is also recorded in the XML
+    """
     out = Path(out)
+    if frequency_hz is None:
+        frequency_hz = scene_info.get("carrier_frequency_hz")
+    origin = scene_info.get("origin")
+    origin_t = (origin["latitude_deg"], origin["longitude_deg"], origin["altitude_m"]) if origin else None
+    xml = radio_scene_xml(meshes.radio, thickness_m, frequency_hz, origin_t)
     (out / "radio" / "meshes").mkdir(parents=True)
     (out / "visual").mkdir()
     for (cls, mat), mesh in meshes.radio.items():
         mesh.export(out / "radio" / "meshes" / f"{cls}_{mat}.ply", encoding="binary")
-    (out / "radio" / "scene.xml").write_text(radio_scene_xml(meshes.radio, thickness_m))
+    (out / "radio" / "scene.xml").write_text(xml)
     meshes.visual.export(out / "visual" / "visual.ply", encoding="binary")
     labels = xr.Dataset({
         "semantic_class": ("face", meshes.face_class,
@@ -178,8 +262,10 @@ def save(meshes: SceneMeshes, out: Path, scene_info: dict, thickness_m: float) -
                         {"long_name": "source feature id (OSM id) of each visual face"}),
     })
     stores.write_store(labels, out / "visual" / "face_labels.zarr")
-    info = dict(scene_info, counts=meshes.counts())
-    (out / "scene.json").write_text(json.dumps(info, indent=2, sort_keys=True) + "\n")
+    info = dict(scene_info, counts=meshes.counts(), radio_thickness_m=thickness_m)
+    if frequency_hz is not None:
+        info["carrier_frequency_hz"] = frequency_hz
+    (out / "scene.json").write_text(json.dumps(info, indent=2, sort_keys=True, ensure_ascii=False) + "\n")
 
 
 def load(path: Path) -> SceneMeshes:
@@ -191,8 +277,9 @@ def load(path: Path) -> SceneMeshes:
     for ply in sorted((path / "radio" / "meshes").glob("*.ply")):
         cls, mat = ply.stem.split("_", 1)
         radio[(cls, mat)] = trimesh.load(ply, process=False, force="mesh")
+    info = json.loads((path / "scene.json").read_text()) if (path / "scene.json").is_file() else {}
     return SceneMeshes(visual, labels["semantic_class"].values, labels["instance_id"].values, radio,
-                       root=path)
+                       root=path, info=info)
 
 
 @dataclass
@@ -202,9 +289,10 @@ class PairedMeshesOutput:
     meshes: SceneMeshes
     scene_info: dict
     thickness_m: float
+    frequency_hz: float | None = None
 
     def save(self, out: Path) -> None:
-        save(self.meshes, out, self.scene_info, self.thickness_m)
+        save(self.meshes, out, self.scene_info, self.thickness_m, self.frequency_hz)
 
 
 def radio_scene_file(path: Path) -> Path:

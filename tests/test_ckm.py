@@ -1,0 +1,220 @@
+"""Channel knowledge maps: analytic cells (two-ray, single path, metal wall), masks, link layers,
+and the mosaic store's tile backfill equivalence."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.constants as const
+import shapely
+import trimesh
+import xarray as xr
+import yaml
+from conftest import ground_square, write_radio_scene
+
+from simart_pipeline import provenance, stores
+from simart_pipeline.ckm import mosaic
+from simart_pipeline.ckm.grid import chunk_shape, scene_tiles, tile_slices
+from simart_pipeline.ckm.layers import tile_layers
+from simart_pipeline.ckm.maps import map_groups, map_template
+from simart_pipeline.config import SceneConfig, load_scene_config
+from simart_pipeline.radio.tracer import RadioScene
+from simart_pipeline.scene import geometry, meshes
+
+FC = 3.5e9
+
+
+def _cfg(scene_dir, edit=None) -> SceneConfig:
+    raw = yaml.safe_load((Path(scene_dir) / "scene.yaml").read_text())
+    if edit:
+        edit(raw)
+    return SceneConfig.model_validate(raw)
+
+
+def _single_bs_iso(raw, ckm=None, position=(0.0, 0.0, 20.0)):
+    raw["base_stations"] = [{"name": "bs0", "position_m": list(position),
+                             "array": {"rows": 1, "cols": 1, "pattern": "iso"}, "power_dbm": 30.0}]
+    raw["ckm"] = {"center_m": [60.0, 0.0], "size_m": [80.0, 20.0], "cell_size_m": 10.0, "height_m": 1.5,
+                  "tiles": [1, 1], **(ckm or {})}
+    raw["materials"] = {"thickness_m": 10.0}  # the ground reflects like a half-space
+
+
+@pytest.fixture(scope="module")
+def tiny_built(tmp_path_factory):
+    from conftest import TESTS
+
+    cfg = load_scene_config(TESTS / "scenes" / "tiny")
+    geom = geometry.build_source_geometry(cfg, TESTS / "scenes" / "tiny")
+    m = meshes.build_meshes(geom)
+    out = tmp_path_factory.mktemp("pm") / "tiny"
+    stores.write_directory(out, lambda d: meshes.save(m, d, {"name": "tiny"}, cfg.materials.thickness_m))
+    return cfg, geom, m, out
+
+
+def _fresnel_tm(eps_r, sigma, cos_i):
+    eta = eps_r - 1j * sigma / (2 * np.pi * FC * const.epsilon_0)
+    root = np.sqrt(eta - (1 - cos_i**2))
+    return (eta * cos_i - root) / (eta * cos_i + root)
+
+
+def test_flat_ground_cells_follow_the_two_ray_model(tiny_scene, tmp_path):
+    """Per cell: incoherent gain (lambda/4pi)^2 (1/d1^2 + |Gamma|^2/d2^2), ToA d1/c, mean delay and
+    RMS delay spread of two paths in closed form, zero azimuth spread of arrival (both paths come
+    from the transmitter's azimuth), and line of sight."""
+    cfg = _cfg(tiny_scene, _single_bs_iso)
+    xml = write_radio_scene(tmp_path / "flat", {"ground": (ground_square(), "medium_dry_ground")}, FC, 10.0)
+    radio = RadioScene(xml, cfg)
+    ds = tile_layers(radio, cfg, geometry.SourceGeometry(), "r0c0").isel(bs=0, height=0)
+    eps_r, sigma, _ = radio.material_properties()["ground"]
+    xx, yy = np.meshgrid(ds["x"].values, ds["y"].values)
+    r = np.hypot(xx, yy)
+    d1, d2 = np.hypot(r, 20.0 - 1.5), np.hypot(r, 21.5)
+    lam = const.c / FC
+    gamma2 = np.abs(_fresnel_tm(eps_r, sigma, 21.5 / d2)) ** 2
+    p1, p2 = (lam / (4 * np.pi * d1)) ** 2, gamma2 * (lam / (4 * np.pi * d2)) ** 2
+    np.testing.assert_allclose(ds["path_gain_db"].values, 10 * np.log10(p1 + p2), atol=0.01)
+    np.testing.assert_allclose(ds["toa_s"].values, d1 / const.c, rtol=1e-6)
+    t1, t2 = d1 / const.c, d2 / const.c
+    np.testing.assert_allclose(ds["mean_delay_s"].values, (p1 * t1 + p2 * t2) / (p1 + p2), rtol=1e-6)
+    np.testing.assert_allclose(ds["rms_delay_spread_s"].values, np.sqrt(p1 * p2) / (p1 + p2) * (t2 - t1),
+                               rtol=2e-3)
+    np.testing.assert_allclose(ds["asa_deg"].values, 0.0, atol=0.05)
+    assert ds["los"].values.all() and (ds["count"].values == 2).all()
+    # the coherent sum lies between the destructive and constructive two-ray bounds
+    coh = 10 ** (ds["path_gain_coherent_db"].values / 10)
+    assert np.all(coh <= (np.sqrt(p1) + np.sqrt(p2)) ** 2 * (1 + 1e-6))
+    assert np.all(coh >= (np.sqrt(p1) - np.sqrt(p2)) ** 2 * (1 - 1e-6))
+
+
+def test_single_path_cells_have_zero_spreads(tiny_scene):
+    cfg = _cfg(tiny_scene, _single_bs_iso)
+    ds = tile_layers(RadioScene(None, cfg), cfg, geometry.SourceGeometry(), "r0c0").isel(bs=0, height=0)
+    assert (ds["count"].values == 1).all()
+    for name in ("rms_delay_spread_s", "asa_deg", "zsa_deg", "asd_deg", "zsd_deg"):
+        np.testing.assert_allclose(ds[name].values, 0.0, atol=1e-3 if name.endswith("deg") else 1e-15)
+    assert (ds["los_power_fraction"].values == 1).all()
+    # free space: the SINR of a lone station is its SNR, and the best beam of one antenna is beam 0
+    np.testing.assert_allclose(ds["sinr_db"].values, ds["snr_db"].values)
+    assert (ds["best_beam"].values == 0).all()
+
+
+def test_a_cell_behind_a_metal_wall_has_no_line_of_sight(tiny_scene, tmp_path):
+    cfg = _cfg(tiny_scene, _single_bs_iso)
+    wall = trimesh.creation.box(extents=[1.0, 60.0, 40.0])
+    wall.apply_translation([50.0, 0.0, 20.0])  # between the station (x = 0) and the cells x > 50.5
+    xml = write_radio_scene(tmp_path / "wall", {"wall": (wall, "metal"), "ground": (ground_square(), "concrete")},
+                            FC, 0.2)
+    geom = geometry.SourceGeometry([geometry.Feature("building", shapely.box(49.5, -30, 50.5, 30), 1,
+                                                     height_m=40.0, min_height_m=0.0, radio_material="metal")])
+    ds = tile_layers(RadioScene(xml, cfg), cfg, geom, "r0c0").isel(bs=0, height=0)
+    x = ds["x"].values
+    behind = x > 50.5
+    assert behind.any() and (~behind).any()
+    assert not ds["los"].values[:, behind].any()
+    assert ds["los"].values[:, ~behind].all()
+
+
+def test_masked_cells_are_never_traced_and_empty_tiles_need_no_scene(tiny_built, tiny_scene):
+    cfg, geom, _, out = tiny_built
+    cfg = _cfg(tiny_scene, lambda raw: raw["ckm"].update(
+        region_m=[[-10.0, -15.0], [10.0, -15.0], [10.0, 15.0], [-10.0, 15.0]]))
+    ds = tile_layers(RadioScene(meshes.radio_scene_file(out), cfg), cfg, geom, "r0c0")
+    inside = ds["cell_inside_building"].values
+    outside = ds["cell_outside_region"].values
+    assert inside.any() and outside.any()
+    masked = inside | outside[None]
+    assert ds.attrs["cells_traced"] == int((~masked).sum())
+    assert not ds["has_path"].values[:, masked].any()
+    assert np.isnan(ds["path_gain_db"].values[:, masked]).all() and (ds["best_bs"].values[masked] == -1).all()
+    empty = tile_layers(None, cfg, geom, "r3c3")  # outside the scene's tiling
+    assert empty.sizes["y"] == 0 and empty.attrs["in_scene_tiling"] == 0
+
+
+def test_equal_interferers_give_the_expected_sinr(tiny_scene):
+    """Two identical stations at mirrored positions: at the midline each is the other's interferer,
+    so SINR = S / (S_mean + N) with S_mean the mean beam gain (one antenna: the same gain)."""
+    def edit(raw):
+        _single_bs_iso(raw, ckm={"center_m": [0.0, 0.0], "size_m": [10.0, 10.0], "cell_size_m": 10.0})
+        raw["base_stations"] = [dict(raw["base_stations"][0], name="a", position_m=[-50.0, 0.0, 20.0]),
+                                dict(raw["base_stations"][0], name="b", position_m=[50.0, 0.0, 20.0])]
+    cfg = _cfg(tiny_scene, edit)
+    ds = tile_layers(RadioScene(None, cfg), cfg, geometry.SourceGeometry(), "r0c0")
+    snr = 10 ** (float(ds["snr_db"].values.ravel()[0]) / 10)
+    sinr = 10 ** (float(ds["sinr_db"].values.ravel()[0]) / 10)
+    np.testing.assert_allclose(sinr, 1 / (1 + 1 / snr), rtol=1e-4)
+    assert 0 <= int(ds["mcs_index"].values.ravel()[0]) and float(ds["rate_bps"].values.ravel()[0]) > 0
+
+
+def _write_map(path, cfg, geom, radio, tiles):
+    for t in tiles:
+        ds = tile_layers(radio, cfg, geom, t)
+        spec, coords, attrs = map_template(cfg, ds, ["sunny", "night"], provenance.attrs(cfg, "ckm_layers"))
+        mosaic.ensure_template(path, cfg.ckm, spec, coords, attrs)
+        mosaic.write_tile(path, cfg.ckm, t, ds)
+
+
+def test_tile_backfills_in_any_order_equal_one_full_run(tiny_built, tiny_scene, tmp_path):
+    """Random subsets of tiles, twice, in different orders, fill the same mosaic as one full run
+    (a single tile with other chunking); a failed tile leaves the others intact and is rerun."""
+    cfg, geom, _, out = tiny_built
+    cfg = _cfg(tiny_scene, lambda raw: raw["ckm"].update(tiles=[3, 2], size_m=[45.0, 35.0]))
+    radio = RadioScene(meshes.radio_scene_file(out), cfg)
+    tiles = scene_tiles(cfg.ckm)
+    assert len(tiles) == 6 and chunk_shape(cfg.ckm) == (4, 3)
+    rng = np.random.default_rng(7)
+    first = list(rng.permutation(tiles))
+    _write_map(tmp_path / "a.zarr", cfg, geom, radio, first[:3])
+    partial = mosaic.open_map(tmp_path / "a.zarr").load()
+    assert int(partial["tile_complete"].sum()) == 3
+    _write_map(tmp_path / "a.zarr", cfg, geom, radio, first[3:] + first[:1])  # the rest, one twice
+    _write_map(tmp_path / "b.zarr", cfg, geom, radio, list(rng.permutation(tiles)))
+    full_cfg = _cfg(tiny_scene, lambda raw: raw["ckm"].update(tiles=[1, 1], size_m=[45.0, 35.0]))
+    _write_map(tmp_path / "full.zarr", full_cfg, geom, RadioScene(meshes.radio_scene_file(out), full_cfg), ["r0c0"])
+    a, b, full = (mosaic.open_map(tmp_path / f"{n}.zarr").load() for n in ("a", "b", "full"))
+    assert a["tile_complete"].all() and b["tile_complete"].all()
+    layers = [v for v in full.data_vars if v != "tile_complete"]
+    xr.testing.assert_identical(a[layers].drop_attrs(), full[layers].drop_attrs())
+    xr.testing.assert_identical(b[layers].drop_attrs(), full[layers].drop_attrs())
+    assert np.isfinite(a["path_gain_db"].values).sum() > 20
+
+    # A tile that fails after marking itself incomplete leaves every other chunk as it was.
+    class Boom(RuntimeError):
+        pass
+
+    victim = tiles[4]
+    ds = tile_layers(radio, cfg, geom, victim)
+    bad = ds.assign(path_gain_db=ds["path_gain_db"] * np.nan)
+    original = xr.Dataset.to_zarr
+
+    def failing(self, *args, **kwargs):
+        raise Boom("disk full")
+
+    xr.Dataset.to_zarr = failing
+    try:
+        with pytest.raises(Boom):
+            mosaic.write_tile(tmp_path / "a.zarr", cfg.ckm, victim, bad)
+    finally:
+        xr.Dataset.to_zarr = original
+    after = mosaic.open_map(tmp_path / "a.zarr").load()
+    sl = tile_slices(cfg.ckm, victim)
+    others = np.ones(cfg.ckm.shape, bool)
+    others[sl] = False
+    assert not after["tile_complete"].values.all()
+    np.testing.assert_array_equal(after["path_gain_db"].values[..., others], full["path_gain_db"].values[..., others])
+    mosaic.write_tile(tmp_path / "a.zarr", cfg.ckm, victim, ds)  # simply rerun
+    xr.testing.assert_identical(mosaic.open_map(tmp_path / "a.zarr").load()[layers].drop_attrs(),
+                                full[layers].drop_attrs())
+
+
+def test_misaligned_regions_are_refused_and_weathers_share_maps(tiny_scene):
+    cfg = _cfg(tiny_scene)
+    assert map_groups(cfg) == {"sunny": ["sunny", "night"], "rainy": ["rainy"]}
+    cfg2 = _cfg(tiny_scene, lambda raw: raw["ckm"].update(tiles=[3, 2], size_m=[45.0, 35.0]))
+    rows, cols = cfg2.ckm.shape
+    covered = np.zeros((rows, cols), int)
+    for t in scene_tiles(cfg2.ckm):
+        sl = tile_slices(cfg2.ckm, t)
+        covered[sl] += 1
+        cy, cx = chunk_shape(cfg2.ckm)
+        assert sl[0].start % cy == 0 and sl[1].start % cx == 0
+    assert (covered == 1).all()

@@ -1,0 +1,357 @@
+"""Ray tracing against analytic answers (Friis, two-ray with Fresnel, Doppler), closed and empty
+scenes, flags, reproducibility, offline replay, weather materials and CIR reuse."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.constants as const
+import trimesh
+import yaml
+
+from conftest import ground_square, write_radio_scene
+
+from simart_pipeline import stores
+from simart_pipeline.config import SceneConfig, load_scene_config
+from simart_pipeline.mobility import replay
+from simart_pipeline.mobility.trajectory import build_trajectory
+from simart_pipeline.radio import cirs as radio_cirs
+from simart_pipeline.radio import materials
+from simart_pipeline.radio.tracer import INVALID_DELAY_S, RadioScene, receivers_per_call
+from simart_pipeline.scene import geometry, meshes
+
+FC = 3.5e9
+
+
+def _cfg(scene_dir, edit=None) -> SceneConfig:
+    raw = yaml.safe_load((Path(scene_dir) / "scene.yaml").read_text())
+    if edit:
+        edit(raw)
+    return SceneConfig.model_validate(raw)
+
+
+def _iso(polarization="V", **rt):
+    def edit(raw):
+        for group in ("base_stations", "platforms"):
+            for d in raw[group]:
+                d["array"] = {"rows": 1, "cols": 1, "pattern": "iso", "polarization": polarization}
+        raw["ray_tracing"] = {**raw.get("ray_tracing", {}), **rt}
+        raw.setdefault("materials", {})["thickness_m"] = 10.0  # ground reflects like a half-space
+    return edit
+
+
+def _write_scene(out: Path, parts: dict, thickness_m: float) -> Path:
+    return write_radio_scene(out, parts, FC, thickness_m)
+
+
+def _ground(size=2000.0):
+    return ground_square(size)
+
+
+def test_empty_scene_has_exactly_one_path_matching_friis_and_light_delay(tiny_scene):
+    cfg = _cfg(tiny_scene, _iso())
+    radio = RadioScene(None, cfg)
+    tx = np.array([[0.0, 0.0, 10.0]])
+    d = np.array([5.0, 50.0, 500.0, 2000.0])
+    rx = np.column_stack([d, np.zeros_like(d), np.full_like(d, 10.0)])
+    p = radio.trace(tx, np.zeros((1, 3)), rx)
+    assert p.valid.sum(-1).ravel().tolist() == [1, 1, 1, 1] and p.los[..., 0].all()
+    lam = const.c / FC
+    np.testing.assert_allclose(np.abs(p.a[:, 0, 0, 0, 0]) ** 2, (lam / (4 * np.pi * d)) ** 2, rtol=1e-5)
+    np.testing.assert_allclose(p.tau_s[:, 0, 0], d / const.c, rtol=1e-6)
+    assert p.tau_s.dtype == np.float64
+
+
+def _fresnel(eps_r: float, sigma: float, cos_i: float) -> tuple[complex, complex]:
+    """Half-space reflection coefficients (TE, TM) for complex relative permittivity."""
+    eta = eps_r - 1j * sigma / (2 * np.pi * FC * const.epsilon_0)
+    sin2 = 1 - cos_i**2
+    root = np.sqrt(eta - sin2)
+    return (cos_i - root) / (cos_i + root), (eta * cos_i - root) / (eta * cos_i + root)
+
+
+@pytest.mark.parametrize("polarization,weather", [("V", "sunny"), ("H", "sunny"), ("V", "rainy")])
+def test_ground_reflection_is_two_ray_with_fresnel(tiny_scene, tmp_path, polarization, weather):
+    """Flat ground: LoS plus one specular bounce at the image distance whose amplitude relative to
+    the LoS is d_los/d_refl x |Gamma| (TM for vertical, TE for horizontal polarisation); rain
+    swaps the ground for ITU wet ground, and the reflection follows its constants."""
+    cfg = _cfg(tiny_scene, _iso(polarization))
+    xml = _write_scene(tmp_path / "flat", {"ground": (_ground(), "medium_dry_ground")}, thickness_m=10.0)
+    radio = RadioScene(xml, cfg, weather)
+    assert radio.radio_materials()["ground"] == ("wet_ground" if weather == "rainy" else "medium_dry_ground")
+    eps_r, sigma, thickness = radio.material_properties()["ground"]
+    assert thickness == 10.0  # a lossy 10 m slab reflects like a half-space
+    h_tx, h_rx = 20.0, 1.5
+    d = np.array([30.0, 100.0, 300.0])
+    rx = np.column_stack([d, np.zeros_like(d), np.full_like(d, h_rx)])
+    p = radio.trace(np.array([[0, 0, h_tx]]), np.zeros((1, 3)), rx, with_vertices=True)
+    assert p.valid.sum(-1).ravel().tolist() == [2, 2, 2]
+    # the bounce point lies on the ground where the image construction puts it
+    np.testing.assert_allclose(p.vertices_m[:, 0, 0, 1], np.column_stack(
+        [d * h_tx / (h_tx + h_rx), np.zeros_like(d), np.zeros_like(d)]), atol=1e-3)
+    d_los, d_ref = np.hypot(d, h_tx - h_rx), np.hypot(d, h_tx + h_rx)
+    np.testing.assert_allclose(p.tau_s[:, 0, :2], np.column_stack([d_los, d_ref]) / const.c, rtol=1e-6)
+    assert p.los[:, 0, 0].all() and not p.los[:, 0, 1].any() and (p.interaction[:, 0, 0, 1] == 1).all()
+    for k in range(len(d)):
+        te, tm = _fresnel(eps_r, sigma, (h_tx + h_rx) / d_ref[k])
+        expected = d_los[k] / d_ref[k] * abs(tm if polarization == "V" else te)
+        ratio = abs(p.a[k, 0, 0, 0, 1]) / abs(p.a[k, 0, 0, 0, 0])
+        np.testing.assert_allclose(ratio, expected, rtol=2e-3)
+
+
+@pytest.mark.parametrize("direction", [+1.0, -1.0])
+def test_doppler_of_radial_motion_is_v_f_over_c(tiny_scene, direction):
+    cfg = _cfg(tiny_scene, _iso())
+    radio = RadioScene(None, cfg)
+    v = 25.0 * direction  # +: moving away from the transmitter
+    p = radio.trace(np.array([[0.0, 0.0, 10.0]]), np.zeros((1, 3)), np.array([[100.0, 0.0, 10.0]]),
+                    rx_velocities=np.array([[v, 0.0, 0.0]]))
+    np.testing.assert_allclose(p.doppler_hz[0, 0, 0], -v * FC / const.c, rtol=1e-5)
+
+
+def test_receiver_enclosed_in_a_metal_box_gets_no_path(tiny_scene, tmp_path):
+    cfg = _cfg(tiny_scene, _iso())
+    box = trimesh.creation.box(extents=[4.0, 4.0, 4.0])
+    box.apply_translation([50.0, 0.0, 2.0])
+    assert box.is_watertight
+    xml = _write_scene(tmp_path / "box", {"box": (box, "metal"), "ground": (_ground(), "concrete")}, 0.2)
+    radio = RadioScene(xml, cfg)
+    p = radio.trace(np.array([[0.0, 0.0, 10.0]]), np.zeros((1, 3)),
+                    np.array([[50.0, 0.0, 2.0], [50.0, 10.0, 2.0]]))
+    assert p.valid[0].sum() == 0
+    assert p.valid[1].sum() >= 1  # the same receiver outside the box does see the transmitter
+
+
+def test_batches_and_memory_budget_do_not_change_paths(tiny_built):
+    cfg, _, _, out = tiny_built
+    rx = np.array([[-30.0, -18.0, 1.5], [0.0, -18.0, 1.5], [25.0, 10.0, 1.5], [5.0, 0.0, 1.5],
+                   [-20.0, 12.0, 1.5]])
+    tx = np.array([b.position_m for b in cfg.base_stations])
+    one = RadioScene(meshes.radio_scene_file(out), cfg).trace(tx, np.zeros((2, 3)), rx)
+    small = cfg.model_copy(update={"ray_tracing": cfg.ray_tracing.model_copy(update={"max_receivers_per_call": 2})})
+    assert receivers_per_call(small) == 2
+    two = RadioScene(meshes.radio_scene_file(out), small).trace(tx, np.zeros((2, 3)), rx)
+    for f in ("valid", "tau_s", "interaction"):
+        np.testing.assert_array_equal(getattr(one, f)[..., :two.tau_s.shape[-1]], getattr(two, f)[..., :one.tau_s.shape[-1]])
+    np.testing.assert_allclose(one.a, two.a, rtol=1e-6, atol=0)
+    # The memory budget caps the receivers per call: 48 B x depth x samples x receivers.
+    rt = cfg.ray_tracing.model_copy(update={"max_solver_memory_gib": 1.0, "samples_per_src": 1_000_000,
+                                            "max_depth": 4})
+    assert receivers_per_call(cfg.model_copy(update={"ray_tracing": rt})) == 2**30 // (48 * 4 * 1_000_000)
+
+
+@pytest.fixture(scope="module")
+def tiny_built(tmp_path_factory):
+    from conftest import TESTS
+
+    cfg = load_scene_config(TESTS / "scenes" / "tiny")
+    geom = geometry.build_source_geometry(cfg, TESTS / "scenes" / "tiny")
+    m = meshes.build_meshes(geom)
+    out = tmp_path_factory.mktemp("pm") / "tiny"
+    stores.write_directory(out, lambda d: meshes.save(m, d, {"name": "tiny"}, cfg.materials.thickness_m))
+    return cfg, geom, m, out
+
+
+def test_flags_fills_and_no_nan_in_the_cir_store(tiny_built, tmp_path):
+    """A receiver 5 mm from a transmitter, one inside a building and one in a closed corner are
+    flagged and never usable; invalid entries hold documented fills; no NaN or inf is stored."""
+    cfg, geom, _, out = tiny_built
+    radio = RadioScene(meshes.radio_scene_file(out), cfg)
+    bs0 = np.array(cfg.base_stations[0].position_m)
+    building = geom.of_class("building")[0].geometry.centroid
+    rx = np.array([[bs0[0] + 0.005, bs0[1], bs0[2]], [building.x, building.y, 1.5], [0.0, -18.0, 1.5]])
+    lg = radio_cirs.LinkGeometry(np.array([0, 10**8, 2 * 10**8])[:1], rx[None], np.zeros((1, 3, 3)),
+                                 np.zeros((1, 3, 3)),
+                                 np.array([b.position_m for b in cfg.base_stations]), np.zeros((2, 3)))
+    cfg1 = cfg.model_copy(update={"platforms": tuple(cfg.platforms[0].model_copy(update={"name": f"p{i}"})
+                                                     for i in range(3))})
+    p = radio.trace(lg.tx_position_m, lg.tx_orientation_rad, rx)
+    ds = radio_cirs.cir_dataset(radio, cfg1, lg, p, geom)
+    rx_of = ds["rx"].values.tolist()
+    near = ds["link_rx_near_tx"].values[0]
+    inside = ds["link_rx_inside_building"].values[0]
+    assert near.tolist() == [r == "p0" for r in rx_of[:3]] + [False] * 3
+    assert inside.tolist() == [r == "p1" for r in rx_of]
+    usable = ds["link_usable"].values[0]
+    assert not usable[near | inside].any()
+    assert (ds["link_status"].values[0][inside] & 2).all() and (ds["link_status"].values[0][near] & 4).all()
+    inv = ~ds["valid"].values
+    assert inv.any()
+    assert (ds["tau_s"].values[inv] == INVALID_DELAY_S).all() and (ds["a"].values.transpose(0, 1, 4, 2, 3)[inv] == 0).all()
+    for name, var in ds.data_vars.items():
+        if np.issubdtype(var.dtype, np.floating) or np.issubdtype(var.dtype, np.complexfloating):
+            assert np.isfinite(var.values).all(), name
+    stores.write_store(ds, tmp_path / "c.zarr")  # the writer refuses NaN without nan_means
+
+
+def test_same_config_twice_gives_bitwise_equal_stores(tiny_built, tmp_path):
+    cfg, geom, _, out = tiny_built
+    traj = build_trajectory(cfg)
+    for run in ("a", "b"):
+        radio = RadioScene(meshes.radio_scene_file(out), cfg)
+        ds = radio_cirs.trace_trajectory(radio, cfg, traj, geom)
+        stores.write_store(ds, tmp_path / f"{run}.zarr")
+    files_a = sorted(f.relative_to(tmp_path / "a.zarr") for f in (tmp_path / "a.zarr").rglob("*") if f.is_file())
+    files_b = sorted(f.relative_to(tmp_path / "b.zarr") for f in (tmp_path / "b.zarr").rglob("*") if f.is_file())
+    assert files_a == files_b and len(files_a) > 20
+    for f in files_a:
+        assert (tmp_path / "a.zarr" / f).read_bytes() == (tmp_path / "b.zarr" / f).read_bytes(), f
+    assert ds["valid"].any() and ds.sizes["link"] == 2
+
+
+def test_offline_replay_from_csv_gives_identical_cirs(tiny_built, tmp_path):
+    cfg, geom, _, out = tiny_built
+    traj = build_trajectory(cfg)
+    scene_dir = tmp_path / "replayed"
+    scene_dir.mkdir()
+    replay.write_csv(traj, "car0", scene_dir / "car0.csv")
+    plat = {**cfg.platforms[0].model_dump(), "trajectory": {"kind": "replay", "path": "car0.csv"}}
+    cfg2 = SceneConfig.model_validate({**cfg.model_dump(), "platforms": [plat]})
+    traj2 = build_trajectory(cfg2, scene_dir)
+    for k in ("position_m", "velocity_mps", "orientation_xyzw"):
+        np.testing.assert_array_equal(traj2[k].values, traj[k].values)
+    radio = RadioScene(meshes.radio_scene_file(out), cfg)
+    a = radio_cirs.trace_trajectory(radio, cfg, traj, geom)
+    b = radio_cirs.trace_trajectory(radio, cfg2, traj2, geom)
+    for name in ("a", "tau_s", "valid", "doppler_hz", "phi_r_rad", "interaction"):
+        np.testing.assert_array_equal(a[name].values, b[name].values)
+    assert a.attrs["cir_content_sha256"] == b.attrs["cir_content_sha256"]
+
+
+def test_replay_between_records_is_smooth_and_bad_csv_is_named(tmp_path):
+    t = np.arange(0, 11) * 10**8  # 10 Hz records of a straight line at 3 m/s
+    csv = tmp_path / "line.csv"
+    csv.write_text("time_ns,x_m,y_m,z_m\n" + "".join(f"{ti},{float(3.0 * ti / 1e9)!r},1.0,2.0\n" for ti in t))
+    rec = replay.read_csv(csv)
+    q = np.array([5 * 10**7, 3 * 10**8 + 12345, 2 * 10**9])
+    poses = replay.resample(rec, q)
+    np.testing.assert_allclose(poses["position_m"][:2, 0], 3.0 * q[:2] / 1e9, atol=1e-9)
+    np.testing.assert_allclose(poses["velocity_mps"][:2], [[3.0, 0, 0]] * 2, atol=1e-9)
+    assert poses["position_m"][2, 0] == pytest.approx(3.0) and (poses["velocity_mps"][2] == 0).all()
+    bad = tmp_path / "bad.csv"
+    bad.write_text("time_ns,x_m,y_m\n0,1,2\n")
+    with pytest.raises(replay.ReplayError, match=r"bad\.csv.*z_m"):
+        replay.read_csv(bad)
+    bad.write_text("time_ns,x_m,y_m,z_m\n0,1,2,3\n0,1,2,3\n")
+    with pytest.raises(replay.ReplayError, match=r"bad\.csv.*increase"):
+        replay.read_csv(bad)
+
+
+def test_replay_outside_the_scene_directory_is_a_config_problem(tiny_scene):
+    raw = yaml.safe_load((tiny_scene / "scene.yaml").read_text())
+    raw["platforms"][0]["trajectory"] = {"kind": "replay", "path": "../../etc/passwd"}
+    (tiny_scene / "scene.yaml").write_text(yaml.safe_dump(raw))
+    from simart_pipeline.config import ConfigError
+
+    with pytest.raises(ConfigError, match=r"platforms\.0\.trajectory\.path.*outside the scene"):
+        load_scene_config(tiny_scene)
+
+
+def test_rain_wets_ground_and_facades_and_dry_weathers_share_a_content_hash(tiny_built):
+    cfg, _, _, out = tiny_built
+    xml = meshes.radio_scene_file(out)
+    dry, night, wet = (RadioScene(xml, cfg, w) for w in ("sunny", "night", "rainy"))
+    before, after = dry.radio_materials(), wet.radio_materials()
+    assert set(before.values()) >= {"concrete", "medium_dry_ground"}
+    assert {after[k] for k, v in before.items() if v == "concrete"} == {"wet_concrete"}
+    assert {after[k] for k, v in before.items() if v == "medium_dry_ground"} == {"wet_ground"}
+    eps, sigma = materials.permittivity_conductivity("wet_concrete", FC)
+    k = next(k for k, v in after.items() if v == "wet_concrete")
+    np.testing.assert_allclose(wet.material_properties()[k][:2], (eps, sigma), rtol=1e-6)
+    assert dry.content_sha256() == night.content_sha256() != wet.content_sha256()
+
+
+def test_water_and_wet_facade_models_against_reference_values():
+    # Klein & Swift: static permittivity of pure water at 20 degC (80.1, CRC handbook) and the
+    # ionic conductivity of standard sea water at 25 degC (5.3 S/m).
+    assert materials.water_permittivity(1e6, 20.0, 0.0).real == pytest.approx(80.1, abs=0.1)
+    sea = materials.water_permittivity(1e6, 25.0, 35.0)
+    assert -sea.imag * const.epsilon_0 * 2 * np.pi * 1e6 == pytest.approx(5.3, abs=0.05)
+    dry = materials.itu_permittivity("concrete", FC)
+    wet = materials.permittivity("wet_concrete", FC)
+    water = materials.water_permittivity(FC)
+    assert dry.real < wet.real < water.real and -dry.imag < -wet.imag < -water.imag
+    with pytest.raises(ValueError, match="unknown radio material 'unobtainium'"):
+        materials.bsdf_id("unobtainium")
+
+
+def test_custom_materials_load_in_plain_sionna(tmp_path):
+    from simart_pipeline import engine
+
+    engine.init()
+    import sionna.rt as rt
+
+    xml = _write_scene(tmp_path / "w", {"sea": (_ground(), "sea_water")}, 0.5)
+    scene = rt.load_scene(str(xml), merge_shapes=False)
+    scene.frequency = FC
+    mat = scene.objects["sea"].radio_material
+    eps, sigma = materials.permittivity_conductivity("sea_water", FC)
+    assert float(np.array(mat.relative_permittivity).ravel()[0]) == pytest.approx(eps, rel=1e-6)
+    assert float(np.array(mat.conductivity).ravel()[0]) == pytest.approx(sigma, rel=1e-6)
+    assert materials.material_name(mat) == "sea_water"
+
+
+def test_paths_picture_is_a_png(tiny_built):
+    import base64
+
+    from simart_pipeline.radio.pictures import traced_paths_markdown
+
+    cfg, geom, _, out = tiny_built
+    radio = RadioScene(meshes.radio_scene_file(out), cfg)
+    lg = radio_cirs.link_geometry(cfg, build_trajectory(cfg))
+    md = traced_paths_markdown(radio, cfg, lg, geom, 2, title="tiny")
+    png = base64.b64decode(md.split("base64,", 1)[1].rstrip(")"))
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
+
+
+def test_paths_are_sorted_valid_first_then_by_delay_then_by_interactions(tiny_built):
+    cfg, _, _, out = tiny_built
+    radio = RadioScene(meshes.radio_scene_file(out), cfg)
+    tx = np.array([b.position_m for b in cfg.base_stations])
+    rx = np.array([[-30.0, -18.0, 1.5], [0.0, -18.0, 1.5], [25.0, 10.0, 1.5]])
+    p1 = radio.trace(tx, np.zeros((2, 3)), rx)
+    p2 = radio.trace(tx, np.zeros((2, 3)), rx)
+    assert np.array_equal(p1.a, p2.a) and np.array_equal(p1.tau_s, p2.tau_s)
+    assert p1.valid.sum() > 6
+    for i in range(3):
+        for j in range(2):
+            v = p1.valid[i, j]
+            assert not np.any(v[1:] & ~v[:-1])  # valid paths first
+            keys = [tuple([p1.tau_s[i, j, k]] + p1.interaction[i, j, :, k].tolist()) for k in np.flatnonzero(v)]
+            assert keys == sorted(keys)  # then by delay, then by interaction sequence
+
+
+def test_per_antenna_gains_are_rebuilt_from_one_gain_and_the_array_geometry(tiny_built):
+    """The stored array geometry and angles are enough to rebuild the per-antenna-pair gains: a
+    plane wave across each array, a[i, j] = a[0, 0] exp(j k (R r_i - R r_0) . u_r) exp(j k (R t_j - R t_0) . u_t)
+    with R the device orientation and u the unit vectors of arrival and departure."""
+    from simart_pipeline import frames
+
+    cfg, geom, _, out = tiny_built
+    cfg = cfg.model_copy(update={"platforms": (cfg.platforms[0].model_copy(update={
+        "array": cfg.base_stations[0].array.model_copy(update={"pattern": "iso"})}),)})
+    radio = RadioScene(meshes.radio_scene_file(out), cfg)
+    lg = radio_cirs.link_geometry(cfg, build_trajectory(cfg))
+    lg.rx_orientation_rad[:] = [0.4, 0.1, -0.2]  # a tilted receiver
+    p = radio.trace(lg.tx_position_m, np.array([[0.3, 0.2, 0.1], [2.0, -0.1, 0.0]]),
+                    lg.rx_position_m.reshape(-1, 3), rx_orientations_rad=lg.rx_orientation_rad.reshape(-1, 3))
+    k = 2 * np.pi / radio.wavelength_m
+    tx_ant, rx_ant = radio.array_positions_m("tx"), radio.array_positions_m("rx")
+    assert len(tx_ant) == len(rx_ant) == 4
+
+    def unit(theta, phi):
+        return np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1)
+
+    checked = 0
+    for r, t, q in zip(*np.nonzero(p.valid)):
+        rot_t = frames.rotation_from_sionna_orientation([[0.3, 0.2, 0.1], [2.0, -0.1, 0.0]][t])
+        rot_r = frames.rotation_from_sionna_orientation([0.4, 0.1, -0.2])
+        u_t = unit(p.theta_t[r, t, q], p.phi_t[r, t, q])
+        u_r = unit(p.theta_r[r, t, q], p.phi_r[r, t, q])
+        ph_t = k * (rot_t.apply(tx_ant) - rot_t.apply(tx_ant[0])) @ u_t
+        ph_r = k * (rot_r.apply(rx_ant) - rot_r.apply(rx_ant[0])) @ u_r
+        a = p.a[r, :, t, :, q]
+        rebuilt = a[0, 0] * np.exp(1j * ph_r)[:, None] * np.exp(1j * ph_t)[None, :]
+        np.testing.assert_allclose(a, rebuilt, rtol=2e-3, atol=2e-3 * np.abs(a[0, 0]))
+        checked += 1
+    assert checked > 10
