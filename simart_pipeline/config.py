@@ -520,6 +520,10 @@ class Ckm(_Model):
     tiles: tuple[int, int] = Field((2, 2), description="tiles along x, along y")
     mode: Literal["reference", "fast"] = Field(
         "reference", description="reference: PathSolver at cell centres; fast: one shoot-and-bounce pass")
+    deterministic_solver: bool = Field(
+        False, description="reference mode: PathSolver(deterministic=True) instead of its default "
+        "candidate generator, which finds the same paths here at a fraction of the time and memory "
+        "per receiver (docs/ckm.md)")
     num_rays: int = Field(10_000_000, ge=1_000, description="fast mode: rays per transmitter")
     min_hits_for_spread: int = Field(10, ge=1, description="fast mode: fewer ray hits mask the spreads")
     weathers: tuple[Literal["sunny", "rainy", "night"], ...] | None = Field(

@@ -35,7 +35,7 @@ def ckm_layers(context: dg.AssetExecutionContext, project: ProjectResource, ray_
     meta = {"in_scene_tiling": True, "mode": cfg.ckm.mode}
     for name, weathers in map_groups(cfg).items():
         radio = ray_tracer.load(paired_meshes, cfg, name)
-        ds = tile_layers(radio, cfg, geom, tile)
+        ds = tile_layers(radio, cfg, geom, tile, project.scene_dir(scene))
         path = map_path(project.data_root, scene, name)
         spec, coords, attrs = map_template(cfg, ds, weathers,
                                            provenance.attrs(cfg, "ckm_layers", weathers=",".join(weathers)))

@@ -68,13 +68,19 @@ def tile_grid(cfg: SceneConfig, geom: SourceGeometry, tile: str) -> TileGrid:
     return TileGrid(tile, rows, cols, y, x, heights, inside, outside_region(ckm, x, y))
 
 
-def codebook_weights(cfg: SceneConfig, tx_ant_positions_m: np.ndarray) -> np.ndarray:
-    """The base stations' codebook ``[num_beams, num_tx_ant]`` (the same as the ``kpis`` stage's)."""
-    from simart_pipeline.link.beams import dft_codebook
+def codebook_weights(cfg: SceneConfig, tx_ant_positions_m: np.ndarray | None, scene_dir=None) -> np.ndarray:
+    """The base stations' codebook ``[num_beams, num_tx_ant]``, the same as the ``kpis`` stage's
+    (``link.beams.scene_codebook_weights``). Without antenna positions (a tile with nothing to
+    trace needs only the beam count) a half-wavelength-spaced grid of the array stands in."""
+    from simart_pipeline.link.beams import scene_codebook_weights
 
-    array = cfg.base_stations[0].array
-    return dft_codebook(tx_ant_positions_m, speed_of_light / cfg.ofdm.carrier_frequency_hz,
-                        array.rows, array.cols, cfg.codebook.oversampling).weights
+    if tx_ant_positions_m is None:
+        a = cfg.base_stations[0].array
+        lam = speed_of_light / cfg.ofdm.carrier_frequency_hz
+        zz, yy = np.meshgrid(np.arange(a.rows), np.arange(a.cols), indexing="ij")
+        tx_ant_positions_m = np.column_stack([np.zeros(a.num_antennas), yy.ravel() * a.spacing_wavelengths * lam,
+                                              zz.ravel() * a.spacing_wavelengths * lam])
+    return scene_codebook_weights(cfg, tx_ant_positions_m, scene_dir)
 
 
 def reference_moments(radio, cfg: SceneConfig, points: np.ndarray, weights: np.ndarray
@@ -83,7 +89,7 @@ def reference_moments(radio, cfg: SceneConfig, points: np.ndarray, weights: np.n
     narrowband path gain ``[B, N]`` (antenna-pair mean of ``|sum_p a_p exp(-j 2 pi f_c tau_p)|^2``)."""
     tx = np.array([b.position_m for b in cfg.base_stations], np.float64)
     tx_ori = np.deg2rad(np.array([b.orientation_deg for b in cfg.base_stations], np.float64))
-    p = radio.grid_scan(tx, tx_ori, points)
+    p = radio.grid_scan(tx, tx_ori, points, deterministic=cfg.ckm.deterministic_solver)
     a = p.a.astype(np.complex128)                          # [N, r, B, n, P]
     power = np.mean(np.abs(a) ** 2, axis=(1, 3))            # [N, B, P]
     tau0 = np.linalg.norm(points[:, None, :] - tx[None], axis=-1) / speed_of_light  # [N, B]
@@ -123,9 +129,10 @@ def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, t
     return mom.CellMoments(**stacked)
 
 
-def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str) -> xr.Dataset:
+def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_dir=None) -> xr.Dataset:
     """Every layer of tile ``tile`` over (bs, height, y, x) and (height, y, x); ``radio`` (a
-    ``RadioScene``) may be None when the tile has no cell to trace."""
+    ``RadioScene``) may be None when the tile has no cell to trace; ``scene_dir`` resolves
+    ``codebook.path``."""
     from simart_pipeline.ckm.link_layers import link_layers
 
     grid = tile_grid(cfg, geom, tile)
@@ -133,15 +140,14 @@ def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str) -> xr.
     shape = (B, H, len(grid.y), len(grid.x))
     traced = grid.traced
     n_traced = int(traced.sum())
-    num_beams = cfg.base_stations[0].array.num_antennas * cfg.codebook.oversampling**2
+    num_beams = codebook_weights(cfg, None, scene_dir).shape[0]
     m = mom.CellMoments.zeros(shape, num_beams)
     coherent = np.zeros(shape)
     if n_traced:
         if radio is None:
             raise ValueError(f"tile {tile}: {n_traced} cells to trace but no radio scene given")
         tx_ant = radio.array_positions_m("tx")
-        weights = codebook_weights(cfg, tx_ant)
-        num_beams = weights.shape[0]
+        weights = codebook_weights(cfg, tx_ant, scene_dir)
         if cfg.ckm.mode == "reference":
             hh, yy, xx = np.meshgrid(grid.heights, grid.y, grid.x, indexing="ij")
             pts = np.column_stack([xx[traced], yy[traced], hh[traced]])

@@ -57,9 +57,12 @@ def sionna_array(array: Array):
                           pattern=array.pattern, polarization=array.polarization)
 
 
-def receivers_per_call(cfg: SceneConfig) -> int:
-    """Receivers per PathSolver call: the configured cap, lowered to fit the memory budget."""
+def receivers_per_call(cfg: SceneConfig, deterministic: bool = True) -> int:
+    """Receivers per PathSolver call: the configured cap, lowered to fit the memory budget of the
+    deterministic solver (the default solver's working set hardly grows with receivers)."""
     rt_cfg = cfg.ray_tracing
+    if not deterministic:
+        return rt_cfg.max_receivers_per_call
     per_rx = SOLVER_BYTES_PER_SAMPLE_BOUNCE_RX * max(rt_cfg.max_depth, 1) * rt_cfg.samples_per_src
     fit = int(rt_cfg.max_solver_memory_gib * 2**30 // per_rx)
     return max(1, min(rt_cfg.max_receivers_per_call, fit))
@@ -85,7 +88,7 @@ class RadioScene:
         self.scene.tx_array = sionna_array(cfg.base_stations[0].array)
         self.scene.rx_array = sionna_array(cfg.platforms[0].array)
         self.material_overrides = self._apply_weather(weather)
-        self.solver = rt.PathSolver(deterministic=True)
+        self.solvers = {True: rt.PathSolver(deterministic=True), False: rt.PathSolver(deterministic=False)}
 
     def _apply_weather(self, weather: str) -> dict[str, str]:
         swapped: dict[str, object] = {}
@@ -152,13 +155,16 @@ class RadioScene:
     def trace(self, tx_positions: np.ndarray, tx_orientations_rad: np.ndarray,
               rx_positions: np.ndarray, rx_velocities: np.ndarray | None = None,
               rx_orientations_rad: np.ndarray | None = None,
-              tx_velocities: np.ndarray | None = None, with_vertices: bool = False) -> TracedPaths:
+              tx_velocities: np.ndarray | None = None, with_vertices: bool = False,
+              deterministic: bool = True) -> TracedPaths:
         """Trace all transmitters to all receivers.
 
         :param tx_positions: [num_tx, 3] m, world; ``tx_orientations_rad`` [num_tx, 3] (yaw, pitch, roll)
         :param rx_positions: [num_rx, 3] m; ``rx_velocities`` [num_rx, 3] m/s;
             ``rx_orientations_rad`` [num_rx, 3]
         :param with_vertices: also return every path's interaction points
+        :param deterministic: ``PathSolver(deterministic=True)`` (the default, for CIRs); False runs
+            Sionna's default candidate generator, which is cheaper per receiver (see docs/ckm.md)
         """
         import sionna.rt as rt
 
@@ -176,7 +182,7 @@ class RadioScene:
                 velocity=None if tx_velocities is None else vec(tx_velocities[i])))
         chunks = []
         try:
-            step = receivers_per_call(self.cfg)
+            step = receivers_per_call(self.cfg, deterministic)
             for start in range(0, num_rx, step):
                 idx = range(start, min(start + step, num_rx))
                 for i in idx:
@@ -186,7 +192,7 @@ class RadioScene:
                     if rx_orientations_rad is not None:
                         kw["orientation"] = vec(rx_orientations_rad[i])
                     self.scene.add(rt.Receiver(f"rx{i}", position=vec(rx_positions[i]), **kw))
-                paths = self.solver(
+                paths = self.solvers[deterministic](
                     self.scene, max_depth=rt_cfg.max_depth,
                     max_num_paths_per_src=rt_cfg.max_num_paths_per_src,
                     samples_per_src=rt_cfg.samples_per_src, synthetic_array=True, los=rt_cfg.los,
@@ -207,10 +213,11 @@ class RadioScene:
         return _sort(_concat(chunks))
 
     def grid_scan(self, tx_positions: np.ndarray, tx_orientations_rad: np.ndarray,
-                  grid_points_m: np.ndarray) -> TracedPaths:
+                  grid_points_m: np.ndarray, deterministic: bool = True) -> TracedPaths:
         """Fixed transmitters and a grid of virtual receivers (static, default orientation): the
         CKM generator's reference mode. ``grid_points_m`` [num_points, 3]."""
-        return self.trace(tx_positions, tx_orientations_rad, np.asarray(grid_points_m, np.float64))
+        return self.trace(tx_positions, tx_orientations_rad, np.asarray(grid_points_m, np.float64),
+                          deterministic=deterministic)
 
 
 def _to_numpy(paths, num_tx: int, num_rx: int, max_depth: int, rx_ant: int, tx_ant: int,

@@ -1,0 +1,363 @@
+"""The one-pass CKM solver against closed forms (Friis with the element pattern, two-ray with the
+ITU ground's Fresnel coefficient, the ITU slab TE/TM reflection of one wall, the codebook's array
+factor), against Sionna RT's RadioMapSolver, and for batch independence, empty batches, indoor
+masks and refusals.
+
+Tolerances on gains are Monte-Carlo ones: a cell hit by ``n`` rays estimates the mean of an
+integrand ``f`` over its area with a relative standard deviation of ``sqrt((1 + cv^2) / n)``,
+``cv`` the coefficient of variation of ``f`` over the cell (``n`` independent uniform hits, the
+count's own fluctuation included; the Fibonacci lattice is about as even). Each cell's bound uses
+its own hit count and integrand, at 4.5 standard deviations: some 400 cells are checked, and at
+3 a few would exceed their bound by chance.
+"""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.constants as const
+import trimesh
+import yaml
+from scipy.spatial.transform import Rotation
+
+from simart_pipeline.ckm import one_pass as op
+from simart_pipeline.ckm.moments import CellMoments
+from simart_pipeline.config import SceneConfig
+from simart_pipeline.link.beams import dft_codebook
+from simart_pipeline.radio import materials
+from simart_pipeline.radio.tracer import RadioScene
+
+TESTS = Path(__file__).resolve().parent
+FC = 3.5e9
+LAM = const.c / FC
+SUB = 16  # sub-points per cell axis for the cell-mean references
+
+
+def _cfg(rows=1, cols=1, pattern="iso", polarization="V") -> SceneConfig:
+    raw = yaml.safe_load((TESTS / "scenes" / "tiny" / "scene.yaml").read_text())
+    for d in raw["base_stations"]:
+        d["array"] = {"rows": rows, "cols": cols, "pattern": pattern, "polarization": polarization}
+    return SceneConfig.model_validate(raw)
+
+
+def _write_scene(out: Path, parts: dict[str, tuple[trimesh.Trimesh, str]], thickness_m: float) -> Path:
+    (out / "meshes").mkdir(parents=True)
+    lines = ['<scene version="2.1.0">']
+    for mat in sorted({m for _, m in parts.values()}):
+        lines.append(materials.bsdf_xml(mat, FC, thickness_m))
+    for name, (mesh, mat) in sorted(parts.items()):
+        mesh.export(out / "meshes" / f"{name}.ply", encoding="binary")
+        lines.append(f'<shape type="ply" id="{name}"><string name="filename" value="meshes/{name}.ply"/>'
+                     f'<boolean name="face_normals" value="true"/><ref id="{materials.bsdf_id(mat)}" name="bsdf"/></shape>')
+    lines.append("</scene>")
+    (out / "scene.xml").write_text("\n".join(lines))
+    return out / "scene.xml"
+
+
+def _quad(corners) -> trimesh.Trimesh:
+    return trimesh.Trimesh(np.array(corners, float), [[0, 1, 2], [0, 2, 3]], process=False)
+
+
+def _ground(h=1000.0):
+    return _quad([[-h, -h, 0], [h, -h, 0], [h, h, 0], [-h, h, 0]])
+
+
+def _wall(x=12.0, h=200.0):
+    return _quad([[x, -h, -h], [x, h, -h], [x, h, h], [x, -h, h]])
+
+
+def _axes(x0, nx, y0, ny, cell):
+    return x0 + (np.arange(nx) + 0.5) * cell, y0 + (np.arange(ny) + 0.5) * cell
+
+
+def _sub_points(x, y, cell, height):
+    """``[ny, nx, SUB*SUB, 3]`` points evenly spread over each cell."""
+    off = (np.arange(SUB) + 0.5) / SUB * cell - cell / 2
+    ox, oy = (a.ravel() for a in np.meshgrid(off, off))
+    X, Y = np.meshgrid(x, y)
+    return np.stack([X[..., None] + ox, Y[..., None] + oy, np.full(X.shape + (SUB * SUB,), height)], -1)
+
+
+def _tr38901_gain(theta, phi):
+    """3GPP TR 38.901 Table 7.3-1 element power gain (linear), local zenith/azimuth in rad."""
+    a_v = -np.minimum(12 * ((np.degrees(theta) - 90) / 65) ** 2, 30)
+    a_h = -np.minimum(12 * (np.degrees(phi) / 65) ** 2, 30)
+    return 10 ** ((-np.minimum(-(a_v + a_h), 30) + 8) / 10)
+
+
+def _mc_bound(count, integrand):
+    """4.5-sigma relative error of a cell mean from ``count`` hits; ``integrand``: ``[..., SUB*SUB]``."""
+    cv2 = integrand.var(-1) / integrand.mean(-1) ** 2
+    return 4.5 * np.sqrt((1 + cv2) / np.maximum(count, 1))
+
+
+def _eta(eps_r, sigma):
+    return eps_r - 1j * sigma / (2 * np.pi * FC * const.epsilon_0)
+
+
+def _slab(eta, cos_i, thickness):
+    """ITU-R P.2040-3 eqs. (37), (43a), (44): slab reflection coefficients (TE, TM)."""
+    root = np.sqrt(eta - (1 - cos_i**2))
+    r_te = (cos_i - root) / (cos_i + root)
+    r_tm = (eta * cos_i - root) / (eta * cos_i + root)
+    x = np.exp(-2j * 2 * np.pi * thickness / LAM * root)
+    return tuple(r * (1 - x) / (1 - r**2 * x) for r in (r_te, r_tm))
+
+
+def _itu(a, b, c, d):
+    """ITU-R P.2040-3 Table 3 eps' = a f^b, sigma = c f^d (f in GHz)."""
+    f = FC / 1e9
+    return a * f**b, c * f**d
+
+
+@pytest.fixture(scope="module")
+def free_space():
+    return RadioScene(None, _cfg(pattern="tr38901"))
+
+
+def test_free_space_gain_is_friis_with_the_element_pattern_toa_is_distance_spreads_zero(free_space):
+    tx = np.array([3.0, -2.0, 12.0])
+    ori = np.array([0.4, 0.25, 0.1])  # yaw, pitch, roll: the pattern is read in the device frame
+    x, y = _axes(-14.0, 14, -10.0, 10, 2.0)
+    heights = np.array([1.5, 5.0])
+    m = op.one_pass_moments(free_space, tx, ori, x, y, heights, 1_000_000, 3)
+    L = m.layers()
+    R = Rotation.from_euler("ZYX", ori).as_matrix()
+    for k, h in enumerate(heights):
+        p = _sub_points(x, y, 2.0, h)
+        v = p - tx
+        d = np.linalg.norm(v, axis=-1)
+        loc = (v / d[..., None]) @ R  # R^T u per point
+        g = _tr38901_gain(np.arccos(loc[..., 2]), np.arctan2(loc[..., 1], loc[..., 0]))
+        f = g * (LAM / (4 * np.pi * d)) ** 2
+        ref = f.mean(-1)
+        assert (m.count[k] >= 100).all()
+        assert (np.abs(m.power[k] / ref - 1) < _mc_bound(m.count[k], f)).all()
+        X, Y = np.meshgrid(x, y)
+        centre = np.stack([X, Y, np.full_like(X, h)], -1)
+        dc = np.linalg.norm(centre - tx, axis=-1)
+        # the image-source correction moves every ray's delay exactly to the centre (float32 ~ fs)
+        np.testing.assert_allclose(L["toa_s"][k], dc / const.c, rtol=0, atol=1e-13)
+        np.testing.assert_allclose(L["mean_delay_s"][k], dc / const.c, rtol=0, atol=1e-13)
+        assert np.nanmax(L["rms_delay_spread_s"][k]) < 1e-13
+        # circular spread sqrt(-2 ln R) of float32 unit vectors: R = 1 - O(1e-7) -> below 0.1 deg
+        for name in ("asa_deg", "zsa_deg", "asd_deg", "zsd_deg"):
+            assert np.nanmax(L[name][k]) < 0.1, name
+        # arrival angles point from the cell back at the source (PathSolver's convention)
+        back = tx - centre
+        np.testing.assert_allclose(np.radians(L["mean_azimuth_arrival_deg"][k]),
+                                   np.arctan2(back[..., 1], back[..., 0]), atol=1e-5)
+        np.testing.assert_allclose(np.radians(L["mean_zenith_departure_deg"][k]),
+                                   np.arccos(-back[..., 2] / dc), atol=1e-5)
+        assert (L["los_power_fraction"][k] == 1).all() and L["los"][k].all()
+
+
+def test_beam_gains_follow_the_array_factor_of_the_dft_codebook():
+    radio = RadioScene(None, _cfg(rows=4, cols=4, pattern="tr38901"))
+    ant = radio.array_positions_m("tx")
+    cb = dft_codebook(ant, radio.wavelength_m, rows=4, cols=4)
+    tx, ori = np.array([0.0, 0.0, 15.0]), np.array([0.5, 0.3, 0.0])
+    x, y = _axes(0.0, 16, -8.0, 8, 2.0)
+    m = op.one_pass_moments(radio, tx, ori, x, y, np.array([1.5]), 400_000, 0, codebook=cb.weights)
+    L = m.layers()
+    X, Y = np.meshgrid(x, y)
+    u = np.stack([X, Y, np.full_like(X, 1.5)], -1) - tx
+    u = (u / np.linalg.norm(u, axis=-1, keepdims=True)) @ Rotation.from_euler("ZYX", ori).as_matrix()
+
+    def dirichlet(du, m_el):  # |sum_m exp(j pi m du)|^2 for half-wavelength spacing
+        x2 = np.pi * du / 2
+        s = np.sin(x2)
+        return np.where(np.abs(s) < 1e-12, m_el**2, (np.sin(m_el * x2) / np.where(np.abs(s) < 1e-12, 1, s)) ** 2)
+
+    uy_b, uz_b = cb.direction_cosines.T
+    af = dirichlet(u[..., 1, None] - uy_b, 4) * dirichlet(u[..., 2, None] - uz_b, 4) / 16
+    # departure directions are grouped on a grid of _DIRECTION_QUANTUM q: each direction moves by
+    # at most sqrt(3) q / 2, each element's phase by eps <= k |p| sqrt(3) q / 2, so with N = 16,
+    # |w| = 1 and |w^T v| <= sqrt(N): |dAF| <= 2 sqrt(N) (sqrt(N) eps) + (sqrt(N) eps)^2
+    eps = 2 * np.pi / LAM * np.linalg.norm(ant, axis=1).max() * np.sqrt(3) * op._DIRECTION_QUANTUM / 2
+    tol = 2 * 4 * (4 * eps) + (4 * eps) ** 2
+    ratio = m.beam_power[0] / m.power[0][..., None]
+    assert np.abs(ratio - af).max() < tol < 0.05
+    top2 = np.sort(af, axis=-1)[..., -2:]
+    clear = top2[..., 1] - top2[..., 0] > 2 * tol
+    assert clear.mean() > 0.9
+    assert (L["best_beam"][0][clear] == af.argmax(-1)[clear]).all()
+
+
+def test_ground_plane_gain_and_delay_spread_follow_the_two_ray_model(tmp_path):
+    xml = _write_scene(tmp_path / "g", {"ground": (_ground(), "medium_dry_ground")}, 10.0)  # thick: half-space
+    radio = RadioScene(xml, _cfg())
+    tx = np.array([0.0, 0.0, 10.0])
+    x, y = _axes(2.0, 10, -6.0, 6, 2.0)
+    m = op.one_pass_moments(radio, tx, np.zeros(3), x, y, np.array([1.5]), 1_000_000, 2)
+    L = m.layers()
+    eta = _eta(*_itu(15.0, -0.1, 0.035, 1.63))  # medium dry ground
+    p = _sub_points(x, y, 2.0, 1.5)
+    d1 = np.linalg.norm(p - tx, axis=-1)
+    image = tx * [1, 1, -1]
+    d2 = np.linalg.norm(p - image, axis=-1)
+    cos_i = (p[..., 2] + tx[2]) / d2
+    # an iso V source's field lies in the vertical plane of incidence: TM only
+    _, r_tm = _slab(eta, cos_i, 10.0)
+    f1 = (LAM / (4 * np.pi * d1)) ** 2
+    f2 = np.abs(r_tm) ** 2 * (LAM / (4 * np.pi * d2)) ** 2
+    g1, g2 = f1.mean(-1), f2.mean(-1)
+    bound = np.maximum(_mc_bound(m.count[0], f1), _mc_bound(m.count[0], f2))
+    assert (m.count[0] > 200).all()
+    assert (np.abs(m.los_power[0] / g1 - 1) < bound).all()
+    assert (np.abs(m.power[0] / (g1 + g2) - 1) < bound).all()
+    X, Y = np.meshgrid(x, y)
+    c = np.stack([X, Y, np.full_like(X, 1.5)], -1)
+    t1 = np.linalg.norm(c - tx, axis=-1) / const.c
+    t2 = np.linalg.norm(c - image, axis=-1) / const.c
+    ds = np.sqrt(g1 * g2) / (g1 + g2) * (t2 - t1)  # two-ray RMS delay spread
+    assert (np.abs(L["rms_delay_spread_s"][0] / ds - 1) < bound).all()
+    np.testing.assert_allclose(L["toa_s"][0], t1, rtol=0, atol=1e-13)
+    assert (L["los"][0]).all()
+
+
+@pytest.mark.parametrize("tx_pol", ["V", "H"])
+def test_one_wall_reflects_with_the_itu_slab_te_tm_coefficients(tmp_path, tx_pol):
+    thickness = 0.2
+    xml = _write_scene(tmp_path / "w", {"wall": (_wall(12.0), "concrete")}, thickness)
+    radio = RadioScene(xml, _cfg(polarization=tx_pol))
+    tx = np.array([0.0, 0.0, 6.0])
+    x, y = _axes(1.0, 5, -8.0, 8, 2.0)
+    runs = {pol: op.one_pass_moments(radio, tx, np.zeros(3), x, y, np.array([1.5]), 1_000_000, 1,
+                                     rx_polarization=pol) for pol in (None, "V")}
+    eta = _eta(*_itu(5.24, 0.0, 0.0462, 0.7822))  # concrete
+    p = _sub_points(x, y, 2.0, 1.5)
+    image = np.array([24.0 - tx[0], tx[1], tx[2]])  # the transmitter mirrored in the wall x = 12
+    v = p - image
+    L2 = np.linalg.norm(v, axis=-1)
+    d = v / L2[..., None]  # arrival direction of the reflected wave
+    d0 = d * [-1, 1, 1]  # its departure direction (mirrored back)
+    n = np.array([-1.0, 0, 0])  # wall normal facing the transmitter
+    cos_i = d0[..., 0]
+    r_te, r_tm = _slab(eta, cos_i, thickness)
+
+    def sph(u):
+        th, ph = np.arccos(u[..., 2]), np.arctan2(u[..., 1], u[..., 0])
+        theta_hat = np.stack([np.cos(th) * np.cos(ph), np.cos(th) * np.sin(ph), -np.sin(th)], -1)
+        phi_hat = np.stack([-np.sin(ph), np.cos(ph), np.zeros_like(ph)], -1)
+        return theta_hat, phi_hat
+
+    e0 = sph(d0)[0 if tx_pol == "V" else 1]  # iso element: unit field along theta-hat or phi-hat
+    e_s = np.cross(d0, n)
+    e_s /= np.linalg.norm(e_s, axis=-1, keepdims=True)
+    e_p_in, e_p_out = np.cross(e_s, d0), np.cross(e_s, d)
+    a_s, a_p = (e0 * e_s).sum(-1), (e0 * e_p_in).sum(-1)
+    field = (r_te * a_s)[..., None] * e_s + (r_tm * a_p)[..., None] * e_p_out
+    spread = (LAM / (4 * np.pi * L2)) ** 2
+    f = {None: (np.abs(field) ** 2).sum(-1) * spread, "V": np.abs((field * sph(d)[0]).sum(-1)) ** 2 * spread}
+    te_share = (np.abs(a_s) ** 2).mean()
+    assert 0.2 < te_share < 0.8  # the geometry mixes TE and TM, so both coefficients are checked
+    for pol, m in runs.items():
+        refl = m.power[0] - m.los_power[0]
+        assert (m.count[0] > 200).all()
+        assert (np.abs(refl / f[pol].mean(-1) - 1) < _mc_bound(m.count[0], f[pol])).all(), pol
+
+
+def test_results_do_not_depend_on_the_batch_size(tmp_path):
+    xml = _write_scene(tmp_path / "gw", {"ground": (_ground(), "medium_dry_ground"),
+                                         "wall": (_wall(12.0), "brick")}, 0.3)
+    radio = RadioScene(xml, _cfg(rows=2, cols=2, pattern="tr38901"))
+    cb = dft_codebook(radio.array_positions_m("tx"), radio.wavelength_m, rows=2, cols=2).weights
+    x, y = _axes(-4.0, 8, -6.0, 6, 2.0)
+    args = (radio, np.array([0.0, 1.0, 8.0]), np.array([0.2, 0.1, 0.0]), x, y, np.array([1.5, 3.0]), 200_000, 2)
+    one = op.one_pass_moments(*args, codebook=cb, batch_rays=200_000)
+    many = op.one_pass_moments(*args, codebook=cb, batch_rays=30_011)  # 7 batches, the last short
+    assert one.count.sum() > 50_000
+    for f in ("count", "min_delay_s", "tau0_s"):
+        np.testing.assert_array_equal(getattr(one, f), getattr(many, f), err_msg=f)
+    # the same deposits summed in another order: float64 rounding only
+    for f in ("power", "los_power", "p_excess_delay_s", "p_excess_delay2_s2", "p_cos", "p_sin", "beam_power"):
+        a, b = getattr(one, f), getattr(many, f)
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(a).max(), err_msg=f)
+    twice = one.merge(one)
+    assert isinstance(twice, op.OnePassMoments) and isinstance(twice, CellMoments)
+    np.testing.assert_allclose(twice.power, 2 * one.power)
+    np.testing.assert_array_equal(twice.min_delay_s, one.min_delay_s)
+
+
+def test_empty_batches_and_rays_that_reach_nothing(free_space):
+    x, y = _axes(0.0, 4, 0.0, 4, 1.0)
+    # every ray of free space leaves the scene after its first segment: the wavefront empties
+    m = op.one_pass_moments(free_space, np.array([0.0, 0.0, 5.0]), np.zeros(3), x, y, np.array([1.5]), 2_000, 3,
+                            batch_rays=500)
+    assert m.count.sum() > 0
+    # one horizontal ray (lattice point 0 of 1) never crosses the plane below: nothing deposited
+    m = op.one_pass_moments(free_space, np.array([0.0, 0.0, 5.0]), np.zeros(3), x, y, np.array([1.5]), 1, 3)
+    assert m.count.sum() == 0 and np.isinf(m.min_delay_s).all()
+    L = m.layers()
+    assert not L["has_path"].any() and np.isnan(L["path_gain_db"]).all()
+    calls = []
+    tracer = op._Tracer(free_space, np.zeros(3), np.eye(3), op._grid(x, y, [1.5]), 100, 2, True, None)
+    tracer.trace(40, 40, lambda dep, los: calls.append(dep))  # an empty lattice sub-range
+    assert calls == []
+
+
+def test_cells_inside_buildings_are_masked_whatever_the_face_orientation(tmp_path):
+    box = trimesh.creation.box(extents=[10.0, 10.0, 20.0])
+    box.apply_translation([5.0, 0.0, 10.0])  # x in [0, 10]
+    flipped = box.copy()
+    flipped.invert()  # inward normals, as in Sionna's bundled scenes
+    x, y = _axes(-3.0, 8, -7.0, 7, 2.0)  # the cell centred at x = 0 is half inside
+    for name, mesh in (("out", box), ("in", flipped)):
+        xml = _write_scene(tmp_path / name, {"ground": (_ground(), "medium_dry_ground"),
+                                             "building": (mesh, "concrete")}, 0.2)
+        radio = RadioScene(xml, _cfg())
+        frac = op.outdoor_fraction(radio, x, y, [1.5])[0]
+        X, Y = np.meshgrid(x, y)
+        inside_x = np.clip((np.minimum(X + 1, 10) - np.maximum(X - 1, 0)) / 2, 0, 1)
+        inside_y = np.clip((np.minimum(Y + 1, 5) - np.maximum(Y - 1, -5)) / 2, 0, 1)
+        np.testing.assert_allclose(frac, 1 - inside_x * inside_y, atol=1e-12, err_msg=name)
+        m = op.one_pass_moments(radio, np.array([-6.0, 0.0, 8.0]), np.zeros(3), x, y, np.array([1.5]), 100_000, 1,
+                                indoor=(X > 12.0))
+        assert (m.masked[0] == ((frac < 0.5) | (X > 12.0))).all()
+        assert (m.power[0][m.masked[0]] == 0).all() and (m.count[0][m.masked[0]] == 0).all()
+        assert (m.power[0][~m.masked[0] & (X < 0)] > 0).all()  # the lit side, straddling cells included
+
+
+def test_gain_agrees_with_sionna_radio_map_solver():
+    import mitsuba as mi
+    import sionna.rt as rt
+
+    radio = RadioScene(rt.scene.simple_street_canyon, _cfg(rows=2, cols=2, pattern="tr38901"))
+    tx, ori = np.array([-30.0, 5.0, 20.0]), np.array([0.3, 0.1, 0.0])
+    cell, centre, size = 4.0, (0.0, 0.0, 1.5), (120.0, 60.0)
+    x, y = _axes(-60.0, 30, -30.0, 15, cell)
+    n = 1_000_000
+    m = op.one_pass_moments(radio, tx, ori, x, y, np.array([1.5]), n, 3)
+    radio.scene.add(rt.Transmitter("tx_rm", position=tx.tolist(), orientation=ori.tolist(), power_dbm=30.0))
+    radio.scene.bandwidth = 1e6
+    element0 = np.zeros(4, np.float32)
+    element0[0] = 1.0  # precode onto one element: the element gain, as PathSolver's a per antenna
+    rm = rt.RadioMapSolver()(radio.scene, center=mi.Point3f(*centre), orientation=mi.Point3f(0, 0, 0),
+                             size=mi.Point2f(*size), cell_size=mi.Point2f(cell, cell), samples_per_tx=n,
+                             max_depth=3, refraction=False, diffraction=False,
+                             precoding_vec=(mi.TensorXf(element0), mi.TensorXf(np.zeros(4, np.float32))))
+    ref = rm.path_gain.numpy()[0]
+    np.testing.assert_allclose(rm.rss.numpy()[0], ref, rtol=1e-5)  # 30 dBm = 1 W
+    np.testing.assert_allclose(rm.cell_centers.numpy()[0, :, 0], x)
+    np.testing.assert_allclose(rm.cell_centers.numpy()[:, 0, 1], y)
+    outdoor = m.outdoor_fraction[0] == 1.0
+    both = outdoor & (ref > 0) & (m.power[0] > 0)
+    one = outdoor & ((ref > 0) != (m.power[0] > 0))
+    assert both.sum() > 150 and one.sum() <= 0.02 * both.sum()
+    err = np.abs(10 * np.log10(m.power[0][both] / ref[both]))
+    assert np.percentile(err, 95) < 0.1
+
+
+def test_unsupported_interactions_and_bad_grids_are_refused(free_space):
+    x, y = _axes(0.0, 4, 0.0, 4, 1.0)
+    args = (free_space, np.zeros(3), np.zeros(3), x, y, np.array([1.5]), 100, 1)
+    for kw in ("refraction", "diffraction", "diffuse_reflection"):
+        with pytest.raises(ValueError, match=f"{kw}.*line of sight and specular"):
+            op.one_pass_moments(*args, **{kw: True})
+    with pytest.raises(ValueError, match="x_m.*equally spaced"):
+        op.one_pass_moments(free_space, np.zeros(3), np.zeros(3), np.array([0.0, 1.0, 3.0]), y, [1.5], 100, 1)
+    with pytest.raises(ValueError, match="single cell"):
+        op.one_pass_moments(free_space, np.zeros(3), np.zeros(3), x[:1], y[:1], [1.5], 100, 1)
+    with pytest.raises(ValueError, match="codebook"):
+        op.one_pass_moments(*args, codebook=np.ones((2, 3)) / np.sqrt(3))
