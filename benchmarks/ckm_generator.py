@@ -1,6 +1,6 @@
 """The CKM generator (reference mode) against a SimART-style loop of one PathSolver call per cell.
 
-    python -m benchmarks.ckm_generator [SCENE_DIR] [--loop-cells 60] [--out DIR]
+    python -m benchmarks.ckm_generator [SCENE_DIR] [--loop-cells 60] [--cell-size M] [--samples N] [--out DIR]
 
 On the same scene, grid and solver settings, in one run:
 
@@ -24,13 +24,13 @@ from pathlib import Path
 
 import numpy as np
 
-from simart_pipeline import engine, stores
+from benchmarks.common import DEMO, build_scene
+from simart_pipeline import engine
 from simart_pipeline.ckm import moments as mom
 from simart_pipeline.ckm.grid import scene_tiles
 from simart_pipeline.ckm.layers import codebook_weights, reference_moments, tile_grid, tile_layers
 from simart_pipeline.config import load_scene_config
 from simart_pipeline.radio.tracer import RadioScene
-from simart_pipeline.scene import geometry, meshes
 
 COMPARED = ("path_gain_db", "toa_s", "mean_delay_s", "rms_delay_spread_s", "asa_deg", "asd_deg",
             "zsa_deg", "zsd_deg", "los_power_fraction", "best_beam_gain_db")
@@ -38,23 +38,23 @@ COMPARED = ("path_gain_db", "toa_s", "mean_delay_s", "rms_delay_spread_s", "asa_
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("scene_dir", nargs="?", default=str(Path(__file__).resolve().parents[1] / "scenes" / "demo"))
+    ap.add_argument("scene_dir", nargs="?", default=str(DEMO))
     ap.add_argument("--loop-cells", type=int, default=60, help="cells traced one call each (a random subset)")
     ap.add_argument("--samples", type=int, help="override ray_tracing.samples_per_src (Sionna's default is 1e6)")
+    ap.add_argument("--cell-size", type=float, help="override ckm.cell_size_m (finer grids batch more cells per call)")
     ap.add_argument("--out", help="directory for results.json")
     args = ap.parse_args(argv)
     scene_dir = Path(args.scene_dir)
     cfg = load_scene_config(scene_dir)
     cfg = cfg.model_copy(update={"ckm": cfg.ckm.model_copy(update={"mode": "reference"})})
+    if args.cell_size:
+        cfg = cfg.model_copy(update={"ckm": cfg.ckm.model_copy(update={"cell_size_m": args.cell_size})})
     if args.samples:
         cfg = cfg.model_copy(update={"ray_tracing": cfg.ray_tracing.model_copy(update={"samples_per_src": args.samples})})
     variant = engine.init()
-    geom = geometry.build_source_geometry(cfg, scene_dir)
     with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "pm"
-        m = meshes.build_meshes(geom)
-        stores.write_directory(out, lambda d: meshes.save(m, d, {"name": cfg.name}, cfg.materials.thickness_m))
-        radio = RadioScene(meshes.radio_scene_file(out), cfg)
+        geom, scene_xml = build_scene(cfg, scene_dir, Path(tmp) / "pm")
+        radio = RadioScene(scene_xml, cfg)
         weights = codebook_weights(cfg, radio.array_positions_m("tx"))
         tiles = scene_tiles(cfg.ckm)
         tile_layers(radio, cfg, geom, tiles[0])  # warm-up: kernel compilation, for both sides
@@ -92,7 +92,7 @@ def main(argv=None) -> int:
     gen_rate = traced / gen_s
     loop_rate = len(pick) / loop_s
     result = {
-        "scene": cfg.name, "variant": variant, "grid_cells": int(np.prod(cfg.ckm.shape)) * len(cfg.ckm.heights),
+        "scene": cfg.name, "variant": variant, "cell_size_m": cfg.ckm.cell_size_m, "tiles": list(cfg.ckm.tiles), "grid_cells": int(np.prod(cfg.ckm.shape)) * len(cfg.ckm.heights),
         "cells_traced": traced, "base_stations": len(cfg.base_stations),
         "samples_per_src": cfg.ray_tracing.samples_per_src, "max_depth": cfg.ray_tracing.max_depth,
         "generator_s": round(gen_s, 3), "generator_cells_per_s": round(gen_rate, 2),

@@ -18,30 +18,27 @@ from pathlib import Path
 
 import numpy as np
 
-from simart_pipeline import engine, stores
+from benchmarks.common import DEMO, build_scene
+from simart_pipeline import engine
 from simart_pipeline.config import load_scene_config
 from simart_pipeline.mobility.trajectory import build_trajectory
 from simart_pipeline.radio import cirs as radio_cirs
 from simart_pipeline.radio.tracer import RadioScene, receivers_per_call
-from simart_pipeline.scene import geometry, meshes
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("scene_dir", nargs="?", default=str(Path(__file__).resolve().parents[1] / "scenes" / "demo"))
+    ap.add_argument("scene_dir", nargs="?", default=str(DEMO))
     ap.add_argument("--receivers", type=int, nargs="+", default=[50, 200, 800])
     args = ap.parse_args(argv)
     scene_dir = Path(args.scene_dir)
     cfg = load_scene_config(scene_dir)
     variant = engine.init()
-    geom = geometry.build_source_geometry(cfg, scene_dir)
     with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "pm"
-        m = meshes.build_meshes(geom)
-        stores.write_directory(out, lambda d: meshes.save(m, d, {"name": cfg.name}, cfg.materials.thickness_m))
+        geom, scene_xml = build_scene(cfg, scene_dir, Path(tmp) / "pm")
         traj = build_trajectory(cfg, scene_dir)
         t0 = time.perf_counter()
-        radio = RadioScene(meshes.radio_scene_file(out), cfg)
+        radio = RadioScene(scene_xml, cfg)
         load_s = time.perf_counter() - t0
         radio_cirs.trace_trajectory(radio, cfg, traj, geom)  # warm-up: JIT compilation
         t0 = time.perf_counter()

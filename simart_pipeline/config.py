@@ -24,6 +24,15 @@ WEATHERS = ("sunny", "rainy", "night")
 MAX_TILES_PER_AXIS = 4  # the static tile partitions are r0c0 .. r3c3 (partitions/__init__.py)
 
 
+def _inside_scene_dir(v: str, what: str) -> str:
+    """A path in the config must be relative and stay inside the scene directory."""
+    p = Path(v)
+    if p.is_absolute() or ".." in p.parts:
+        raise ValueError(f"{v!r}: {what} must lie inside the scene directory (a relative path "
+                         "without '..')")
+    return v
+
+
 class ConfigError(ValueError):
     """A scene config problem; ``problems`` holds one ``file: key.path: message`` line each."""
 
@@ -78,14 +87,7 @@ class OsmSource(_Model):
     storey_height_m: float = Field(3.0, gt=0)
     facade_detail: bool = Field(True, description="window frames on the visual mesh's facades")
 
-    @field_validator("path")
-    @classmethod
-    def _inside_scene_dir(cls, v):
-        p = Path(v)
-        if p.is_absolute() or ".." in p.parts:
-            raise ValueError(f"{v!r}: the extract must lie inside the scene directory "
-                             "(a relative path without '..')")
-        return v
+    _inside = field_validator("path")(classmethod(lambda cls, v: _inside_scene_dir(v, "the extract")))
 
     @field_validator("bbox_deg")
     @classmethod
@@ -183,14 +185,7 @@ class MeshSource(_Model):
     path: str
     rules: MeshImportRules = Field(default_factory=lambda: MeshImportRules())
 
-    @field_validator("path")
-    @classmethod
-    def _inside_scene_dir(cls, v):
-        p = Path(v)
-        if p.is_absolute() or ".." in p.parts:
-            raise ValueError(f"{v!r}: the mesh must lie inside the scene directory "
-                             "(a relative path without '..')")
-        return v
+    _inside = field_validator("path")(classmethod(lambda cls, v: _inside_scene_dir(v, "the mesh")))
 
 
 Source = Annotated[Union[ProceduralSource, OsmSource, MeshSource], Field(discriminator="kind")]
@@ -375,6 +370,7 @@ class ReplayTrajectory(_Model):
     kind: Literal["replay"]
     path: str
     time_offset_s: float = Field(0.0, description="added to the recorded times")
+    _inside = field_validator("path")(classmethod(lambda cls, v: _inside_scene_dir(v, "the recording")))
 
 
 def _trajectory_kind(v) -> str:

@@ -8,6 +8,21 @@ REPO = TESTS.parent
 SHARED_DATA = REPO.parent / "shared" / "data"
 
 
+@pytest.fixture(scope="session")
+def tiny_built(tmp_path_factory):
+    """tests/scenes/tiny built once: (config, source geometry, paired meshes, their directory)."""
+    from simart_pipeline import stores
+    from simart_pipeline.config import load_scene_config
+    from simart_pipeline.scene import geometry, meshes
+
+    cfg = load_scene_config(TESTS / "scenes" / "tiny")
+    geom = geometry.build_source_geometry(cfg, TESTS / "scenes" / "tiny")
+    m = meshes.build_meshes(geom)
+    out = tmp_path_factory.mktemp("pm") / "tiny"
+    stores.write_directory(out, lambda d: meshes.save(m, d, {"name": "tiny"}, cfg.materials.thickness_m))
+    return cfg, geom, m, out
+
+
 @pytest.fixture
 def tiny_scene(tmp_path) -> Path:
     """A writable copy of tests/scenes/tiny (tests may edit its scene.yaml)."""

@@ -12,12 +12,12 @@ import xarray as xr
 import yaml
 from conftest import ground_square, write_radio_scene
 
-from simart_pipeline import provenance, stores
+from simart_pipeline import provenance
 from simart_pipeline.ckm import mosaic
 from simart_pipeline.ckm.grid import chunk_shape, scene_tiles, tile_slices
 from simart_pipeline.ckm.layers import tile_layers
 from simart_pipeline.ckm.maps import map_groups, map_template
-from simart_pipeline.config import SceneConfig, load_scene_config
+from simart_pipeline.config import SceneConfig
 from simart_pipeline.radio.tracer import RadioScene
 from simart_pipeline.scene import geometry, meshes
 
@@ -37,18 +37,6 @@ def _single_bs_iso(raw, ckm=None, position=(0.0, 0.0, 20.0)):
     raw["ckm"] = {"center_m": [60.0, 0.0], "size_m": [80.0, 20.0], "cell_size_m": 10.0, "height_m": 1.5,
                   "tiles": [1, 1], **(ckm or {})}
     raw["materials"] = {"thickness_m": 10.0}  # the ground reflects like a half-space
-
-
-@pytest.fixture(scope="module")
-def tiny_built(tmp_path_factory):
-    from conftest import TESTS
-
-    cfg = load_scene_config(TESTS / "scenes" / "tiny")
-    geom = geometry.build_source_geometry(cfg, TESTS / "scenes" / "tiny")
-    m = meshes.build_meshes(geom)
-    out = tmp_path_factory.mktemp("pm") / "tiny"
-    stores.write_directory(out, lambda d: meshes.save(m, d, {"name": "tiny"}, cfg.materials.thickness_m))
-    return cfg, geom, m, out
 
 
 def _fresnel_tm(eps_r, sigma, cos_i):

@@ -18,7 +18,7 @@ from simart_pipeline.mobility.trajectory import build_trajectory
 from simart_pipeline.radio import cirs as radio_cirs
 from simart_pipeline.radio import materials
 from simart_pipeline.radio.tracer import INVALID_DELAY_S, RadioScene, receivers_per_call
-from simart_pipeline.scene import geometry, meshes
+from simart_pipeline.scene import meshes
 
 FC = 3.5e9
 
@@ -140,18 +140,6 @@ def test_batches_and_memory_budget_do_not_change_paths(tiny_built):
     assert receivers_per_call(cfg.model_copy(update={"ray_tracing": rt})) == 2**30 // (48 * 4 * 1_000_000)
 
 
-@pytest.fixture(scope="module")
-def tiny_built(tmp_path_factory):
-    from conftest import TESTS
-
-    cfg = load_scene_config(TESTS / "scenes" / "tiny")
-    geom = geometry.build_source_geometry(cfg, TESTS / "scenes" / "tiny")
-    m = meshes.build_meshes(geom)
-    out = tmp_path_factory.mktemp("pm") / "tiny"
-    stores.write_directory(out, lambda d: meshes.save(m, d, {"name": "tiny"}, cfg.materials.thickness_m))
-    return cfg, geom, m, out
-
-
 def test_flags_fills_and_no_nan_in_the_cir_store(tiny_built, tmp_path):
     """A receiver 5 mm from a transmitter, one inside a building and one in a closed corner are
     flagged and never usable; invalid entries hold documented fills; no NaN or inf is stored."""
@@ -243,7 +231,7 @@ def test_replay_outside_the_scene_directory_is_a_config_problem(tiny_scene):
     (tiny_scene / "scene.yaml").write_text(yaml.safe_dump(raw))
     from simart_pipeline.config import ConfigError
 
-    with pytest.raises(ConfigError, match=r"platforms\.0\.trajectory\.path.*outside the scene"):
+    with pytest.raises(ConfigError, match=r"platforms\.0\.trajectory\.path.*inside the scene directory"):
         load_scene_config(tiny_scene)
 
 

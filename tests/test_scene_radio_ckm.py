@@ -7,8 +7,7 @@ import pytest
 import shapely
 import yaml
 
-from simart_pipeline import stores
-from simart_pipeline.config import SceneConfig, load_scene_config
+from simart_pipeline.config import SceneConfig
 from simart_pipeline.scene import extrude, geometry, meshes
 
 
@@ -22,18 +21,6 @@ def _cfg(scene_dir, edit=None) -> SceneConfig:
 def _iso(raw):
     for b in raw["base_stations"]:
         b["array"] = {"rows": 1, "cols": 1, "pattern": "iso"}
-
-
-@pytest.fixture(scope="module")
-def tiny_built(tmp_path_factory):
-    from conftest import TESTS
-
-    cfg = load_scene_config(TESTS / "scenes" / "tiny")
-    geom = geometry.build_source_geometry(cfg, None)
-    m = meshes.build_meshes(geom)
-    out = tmp_path_factory.mktemp("pm") / "tiny"
-    stores.write_directory(out, lambda d: meshes.save(m, d, {"name": "tiny"}, cfg.materials.thickness_m))
-    return cfg, geom, m, out
 
 
 def test_extruded_buildings_have_footprint_times_height_volume(tiny_built):

@@ -225,7 +225,7 @@ class _Tracer:
     """Dr.Jit side: launch, intersect, deposit, reflect; hands deposits to numpy per segment."""
 
     def __init__(self, radio, tx_position_m, tx_rotation: np.ndarray, grid: _Grid, num_rays: int,
-                 max_depth: int, los: bool, rx_polarization: str | None):
+                 max_depth: int, los: bool, rx_polarization: str | None, with_beams: bool = False):
         import drjit as dr
         import mitsuba as mi
 
@@ -252,6 +252,7 @@ class _Tracer:
         self.max_depth = max_depth
         self.los = los
         self.rx_polarization = rx_polarization
+        self.with_beams = with_beams
         self.wavelength = opaque(radio.wavelength_m)
         eta_re, eta_im, thick, spec = _material_tables(radio)
         self.mat = tuple(mi.Float(np.asarray(a, np.float32)) for a in (eta_re, eta_im, thick, spec))
@@ -317,8 +318,23 @@ class _Tracer:
             field2 = dr.square(dr.dot(e_re, u)) + dr.square(dr.dot(e_im, u))
         power = field2 * self.power_scale / dr.abs(d.z)
         cell = cell_offset + mi.UInt32(row) * g["nx_int"] + mi.UInt32(col)
-        out = dict(cell=cell, power=power, dist=dist, dcx=d_c.x, dcy=d_c.y, dcz=d_c.z,
-                   ddx=d_dep.x, ddy=d_dep.y, ddz=d_dep.z)
+        out = dict(cell=cell, power=power, dist=dist)
+        # cos and sin of azimuth and zenith, arrival then departure (ANGLES order); arrival angles
+        # are those of -d_c, towards where the wave comes from, as PathSolver's
+        for k, u in enumerate((-d_c, d_dep)):
+            rho = dr.sqrt(dr.maximum(u.x * u.x + u.y * u.y, 0.0))
+            safe = rho > 0
+            out[f"cos{2 * k}"] = dr.select(safe, u.x / rho, 1.0)
+            out[f"sin{2 * k}"] = dr.select(safe, u.y / rho, 0.0)
+            out[f"cos{2 * k + 1}"] = dr.clip(u.z, -1.0, 1.0)
+            out[f"sin{2 * k + 1}"] = rho
+        if self.with_beams:  # departure direction in the device frame, quantised (see _beams)
+            key = mi.UInt64(0)
+            for k in range(3):
+                c = sum(self.rot[i][k] * d_dep[i] for i in range(3))
+                q = mi.UInt64(mi.Int32(dr.round(c * (1.0 / _DIRECTION_QUANTUM))) + _Q_OFFSET)
+                key = (key << _Q_BITS) | q
+            out["dkey"] = key
         dr.eval(*out.values())
         return {k: v.numpy() for k, v in out.items()}
 
@@ -385,7 +401,9 @@ class _Accumulator:
         self.shape = grid.shape
         ncell = int(np.prod(self.shape))
         self.m = CellMoments.zeros((ncell,), None if codebook is None else codebook.shape[0])
-        self.m.tau0_s = np.linalg.norm(grid.centres() - np.asarray(tx_position_m, np.float64), axis=-1) / SPEED_OF_LIGHT
+        self.centres = grid.centres()
+        self.tx = np.asarray(tx_position_m, np.float64)
+        self.m.tau0_s = np.linalg.norm(self.centres - self.tx, axis=-1) / SPEED_OF_LIGHT
         self.codebook = codebook
         self.ant = ant_positions_m
         self.rot = tx_rotation
@@ -402,28 +420,20 @@ class _Accumulator:
         tau = dep["dist"].astype(np.float64) / SPEED_OF_LIGHT
         np.minimum.at(m.min_delay_s, cell, tau)
         dtau = tau - m.tau0_s[cell]
-        m.p_excess_delay_s += np.bincount(cell, p * dtau, n)
-        m.p_excess_delay2_s2 += np.bincount(cell, p * dtau * dtau, n)
-        # arrival angles are those of -d_c (towards where the wave comes from), as PathSolver's
-        for k, (x, y, z) in enumerate(((-dep["dcx"], -dep["dcy"], -dep["dcz"]),
-                                       (dep["ddx"], dep["ddy"], dep["ddz"]))):
-            x, y, z = (np.asarray(a, np.float64) for a in (x, y, z))
-            rho = np.hypot(x, y)
-            safe = rho > 0
-            cos_az = np.where(safe, x / np.where(safe, rho, 1.0), 1.0)
-            sin_az = np.where(safe, y / np.where(safe, rho, 1.0), 0.0)
-            for j, (cv, sv) in enumerate(((cos_az, sin_az), (np.clip(z, -1.0, 1.0), rho))):
-                m.p_cos[:, 2 * k + j] += np.bincount(cell, p * cv, n)
-                m.p_sin[:, 2 * k + j] += np.bincount(cell, p * sv, n)
-        if self.codebook is not None:
-            self._beams(cell, p, np.stack([dep["ddx"], dep["ddy"], dep["ddz"]], -1).astype(np.float64))
+        pd = p * dtau
+        m.p_excess_delay_s += np.bincount(cell, pd, n)
+        m.p_excess_delay2_s2 += np.bincount(cell, pd * dtau, n)
+        for k in range(4):
+            m.p_cos[:, k] += np.bincount(cell, p * dep[f"cos{k}"], n)
+            m.p_sin[:, k] += np.bincount(cell, p * dep[f"sin{k}"], n)
+        if self.codebook is not None and not line_of_sight:  # line of sight: in moments()
+            self._beams(cell, p, dep["dkey"].astype(np.int64))
 
-    def _beams(self, cell, p, d_dep_world):
+    def _beams(self, cell, p, dkey):
         # Deposits of a cell that share a departure direction (one path: the same direction up to
         # float32 noise after the image-source correction) share a beam factor: evaluate it once
-        # per group, at the direction quantised to _DIRECTION_QUANTUM (batch independent).
-        q = np.rint(d_dep_world @ self.rot / _DIRECTION_QUANTUM).astype(np.int64) + _Q_OFFSET  # device frame
-        dkey = (q[:, 0] << (2 * _Q_BITS)) | (q[:, 1] << _Q_BITS) | q[:, 2]
+        # per group, at the direction quantised to _DIRECTION_QUANTUM in the device frame (the
+        # key, made on the Dr.Jit side: the same for a ray whatever its batch).
         g_cell, g_dkey, pg = _group_sums(cell, dkey, p, len(self.m.power))
         mask = (1 << _Q_BITS) - 1
         u = (np.stack([(g_dkey >> (k * _Q_BITS)) & mask for k in (2, 1, 0)], -1) - _Q_OFFSET) * _DIRECTION_QUANTUM
@@ -435,6 +445,13 @@ class _Accumulator:
     def moments(self) -> CellMoments:
         s = self.shape
         m = self.m
+        if self.codebook is not None:
+            # every line-of-sight deposit of a cell leaves towards the cell centre exactly (its image
+            # source is the transmitter): one beam factor per cell, at the unquantised direction
+            lit = np.flatnonzero(m.los_power > 0)
+            u = self.centres[lit] - self.tx
+            u = (u / np.linalg.norm(u, axis=1, keepdims=True)) @ self.rot  # device frame
+            m.beam_power[lit] += m.los_power[lit, None] * beam_factors(self.codebook, self.ant, u, self.k)
         return CellMoments(
             power=m.power.reshape(s), los_power=m.los_power.reshape(s), count=m.count.reshape(s),
             min_delay_s=m.min_delay_s.reshape(s), tau0_s=m.tau0_s.reshape(s),
@@ -566,7 +583,8 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
     else:
         ant = None
     depth = int(max_depth) if specular_reflection else 0
-    tracer = _Tracer(radio, tx_position_m, rot, grid, int(num_rays), depth, los, rx_polarization)
+    tracer = _Tracer(radio, tx_position_m, rot, grid, int(num_rays), depth, los, rx_polarization,
+                     with_beams=codebook is not None)
     acc = _Accumulator(grid, tx_position_m, codebook, ant, rot, radio.wavelength_m)
     for start in range(0, int(num_rays), int(batch_rays)):
         tracer.trace(start, min(start + int(batch_rays), int(num_rays)), acc)
