@@ -11,6 +11,7 @@ its own hit count and integrand, at 4.5 standard deviations: some 400 cells are 
 3 a few would exceed their bound by chance.
 """
 
+from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +22,7 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from simart_pipeline.ckm import one_pass as op
+from simart_pipeline.ckm import shoot_bounce as sb
 from simart_pipeline.ckm.moments import CellMoments
 from simart_pipeline.config import SceneConfig
 from simart_pipeline.link.beams import dft_codebook
@@ -152,36 +154,54 @@ def test_free_space_gain_is_friis_with_the_element_pattern_toa_is_distance_sprea
         assert (L["los_power_fraction"][k] == 1).all() and L["los"][k].all()
 
 
-def test_beam_gains_follow_the_array_factor_of_the_dft_codebook():
-    radio = RadioScene(None, _cfg(rows=4, cols=4, pattern="tr38901"))
+def test_beam_gains_follow_the_array_factor_of_the_dft_codebook(tmp_path):
+    # a ground plane: each cell has a line-of-sight path and a ground reflection, whose beam gains
+    # follow the array factor of their own departure directions
+    xml = _write_scene(tmp_path / "g", {"ground": (_ground(), "medium_dry_ground")}, 10.0)
+    radio = RadioScene(xml, _cfg(rows=4, cols=4, pattern="tr38901"))
     ant = radio.array_positions_m("tx")
     cb = dft_codebook(ant, radio.wavelength_m, rows=4, cols=4)
     tx, ori = np.array([0.0, 0.0, 15.0]), np.array([0.5, 0.3, 0.0])
     x, y = _axes(0.0, 16, -8.0, 8, 2.0)
-    m = op.one_pass_moments(radio, tx, ori, x, y, np.array([1.5]), 400_000, 0, codebook=cb.weights)
+    m = op.one_pass_moments(radio, tx, ori, x, y, np.array([1.5]), 400_000, 1, codebook=cb.weights)
     L = m.layers()
     X, Y = np.meshgrid(x, y)
-    u = np.stack([X, Y, np.full_like(X, 1.5)], -1) - tx
-    u = (u / np.linalg.norm(u, axis=-1, keepdims=True)) @ Rotation.from_euler("ZYX", ori).as_matrix()
+    centre = np.stack([X, Y, np.full_like(X, 1.5)], -1)
+    R = Rotation.from_euler("ZYX", ori).as_matrix()
+
+    def device_frame(v):
+        return (v / np.linalg.norm(v, axis=-1, keepdims=True)) @ R
+
+    u_los = device_frame(centre - tx)
+    u_refl = device_frame((centre - tx * [1, 1, -1]) * [1, 1, -1])  # towards the ground, mirrored
 
     def dirichlet(du, m_el):  # |sum_m exp(j pi m du)|^2 for half-wavelength spacing
         x2 = np.pi * du / 2
         s = np.sin(x2)
-        return np.where(np.abs(s) < 1e-12, m_el**2, (np.sin(m_el * x2) / np.where(np.abs(s) < 1e-12, 1, s)) ** 2)
+        small = np.abs(s) < 1e-12
+        return np.where(small, m_el**2, (np.sin(m_el * x2) / np.where(small, 1, s)) ** 2)
 
     uy_b, uz_b = cb.direction_cosines.T
-    af = dirichlet(u[..., 1, None] - uy_b, 4) * dirichlet(u[..., 2, None] - uz_b, 4) / 16
-    # departure directions are grouped on a grid of _DIRECTION_QUANTUM q: each direction moves by
+
+    def af(u):  # analytic array factor of every beam, [..., 16]
+        return dirichlet(u[..., 1, None] - uy_b, 4) * dirichlet(u[..., 2, None] - uz_b, 4) / 16
+
+    refl = m.power[0] - m.los_power[0]
+    assert (refl > 0.05 * m.power[0]).all()
+    expect = m.los_power[0][..., None] * af(u_los) + refl[..., None] * af(u_refl)
+    # reflected departure directions are grouped on a grid of _DIRECTION_QUANTUM q: each moves by
     # at most sqrt(3) q / 2, each element's phase by eps <= k |p| sqrt(3) q / 2, so with N = 16,
-    # |w| = 1 and |w^T v| <= sqrt(N): |dAF| <= 2 sqrt(N) (sqrt(N) eps) + (sqrt(N) eps)^2
-    eps = 2 * np.pi / LAM * np.linalg.norm(ant, axis=1).max() * np.sqrt(3) * op._DIRECTION_QUANTUM / 2
+    # |w| = 1 and |w^T v| <= sqrt(N): |dAF| <= 2 sqrt(N) (sqrt(N) eps) + (sqrt(N) eps)^2 (line of
+    # sight is evaluated at the exact direction)
+    eps = 2 * np.pi / LAM * np.linalg.norm(ant, axis=1).max() * np.sqrt(3) * sb.DIRECTION_QUANTUM / 2
     tol = 2 * 4 * (4 * eps) + (4 * eps) ** 2
-    ratio = m.beam_power[0] / m.power[0][..., None]
-    assert np.abs(ratio - af).max() < tol < 0.05
-    top2 = np.sort(af, axis=-1)[..., -2:]
+    assert tol < 0.05
+    err = np.abs(m.beam_power[0] - expect) / m.power[0][..., None]
+    assert err.max() < tol
+    top2 = np.sort(expect, axis=-1)[..., -2:] / m.power[0][..., None]
     clear = top2[..., 1] - top2[..., 0] > 2 * tol
     assert clear.mean() > 0.9
-    assert (L["best_beam"][0][clear] == af.argmax(-1)[clear]).all()
+    assert (L["best_beam"][0][clear] == expect.argmax(-1)[clear]).all()
 
 
 def test_ground_plane_gain_and_delay_spread_follow_the_two_ray_model(tmp_path):
@@ -267,6 +287,9 @@ def test_results_do_not_depend_on_the_batch_size(tmp_path):
     args = (radio, np.array([0.0, 1.0, 8.0]), np.array([0.2, 0.1, 0.0]), x, y, np.array([1.5, 3.0]), 200_000, 2)
     one = op.one_pass_moments(*args, codebook=cb, batch_rays=200_000)
     many = op.one_pass_moments(*args, codebook=cb, batch_rays=30_011)  # 7 batches, the last short
+    again = op.one_pass_moments(*args, codebook=cb, batch_rays=30_011)
+    for f in fields(CellMoments):  # the same run twice: bitwise equal
+        np.testing.assert_array_equal(getattr(many, f.name), getattr(again, f.name), err_msg=f.name)
     assert one.count.sum() > 50_000
     for f in ("count", "min_delay_s", "tau0_s"):
         np.testing.assert_array_equal(getattr(one, f), getattr(many, f), err_msg=f)
@@ -278,6 +301,22 @@ def test_results_do_not_depend_on_the_batch_size(tmp_path):
     assert isinstance(twice, op.OnePassMoments) and isinstance(twice, CellMoments)
     np.testing.assert_allclose(twice.power, 2 * one.power)
     np.testing.assert_array_equal(twice.min_delay_s, one.min_delay_s)
+
+
+def test_direction_groups_are_the_same_with_one_key_or_two():
+    rng = np.random.default_rng(3)
+    cell = rng.integers(0, 50, 5000)
+    dkey = rng.integers(0, 4, 5000) << 20 | rng.integers(0, 3, 5000)
+    w = rng.random(5000)
+    small = op._group_sums(cell, dkey, w, 50)  # one packed int64 key
+    large = op._group_sums(cell, dkey, w, 1 << 40)  # grids too large to pack: lexsort
+    for a, b in zip(small, large):
+        np.testing.assert_allclose(a, b, rtol=1e-12)
+    expect = {}
+    for c, k, v in zip(cell, dkey, w):
+        expect[(c, k)] = expect.get((c, k), 0.0) + v
+    assert dict(zip(zip(small[0], small[1]), small[2])) == pytest.approx(expect)
+    assert (np.diff(small[0]) >= 0).all()
 
 
 def test_empty_batches_and_rays_that_reach_nothing(free_space):
@@ -292,7 +331,7 @@ def test_empty_batches_and_rays_that_reach_nothing(free_space):
     L = m.layers()
     assert not L["has_path"].any() and np.isnan(L["path_gain_db"]).all()
     calls = []
-    tracer = op._Tracer(free_space, np.zeros(3), np.eye(3), op._grid(x, y, [1.5]), 100, 2, True, None)
+    tracer = sb.Tracer(free_space, np.zeros(3), np.eye(3), sb.grid_from_centres(x, y, [1.5]), 100, 2, True, None)
     tracer.trace(40, 40, lambda dep, los: calls.append(dep))  # an empty lattice sub-range
     assert calls == []
 
@@ -357,7 +396,16 @@ def test_unsupported_interactions_and_bad_grids_are_refused(free_space):
             op.one_pass_moments(*args, **{kw: True})
     with pytest.raises(ValueError, match="x_m.*equally spaced"):
         op.one_pass_moments(free_space, np.zeros(3), np.zeros(3), np.array([0.0, 1.0, 3.0]), y, [1.5], 100, 1)
-    with pytest.raises(ValueError, match="single cell"):
+    with pytest.raises(ValueError, match="single cell.*cell_size_m"):
         op.one_pass_moments(free_space, np.zeros(3), np.zeros(3), x[:1], y[:1], [1.5], 100, 1)
+    with pytest.raises(ValueError, match="x_m: spacing"):
+        op.one_pass_moments(*args, cell_size_m=2.0)
+    one = op.one_pass_moments(free_space, np.array([0.0, 0.0, 5.0]), np.zeros(3), x[:1], y[:1], [1.5], 10_000, 0,
+                              cell_size_m=1.0)  # a one-cell tile
+    assert one.power.shape == (1, 1, 1) and one.count[0, 0, 0] > 0
     with pytest.raises(ValueError, match="codebook"):
         op.one_pass_moments(*args, codebook=np.ones((2, 3)) / np.sqrt(3))
+    with pytest.raises(ValueError, match="unit norm"):
+        op.one_pass_moments(*args, codebook=np.ones((2, 1)) * 2.0)
+    with pytest.raises(ValueError, match="indoor.*broadcast"):
+        op.one_pass_moments(*args, indoor=np.zeros((3, 3), bool))

@@ -1,0 +1,431 @@
+"""Shoot and bounce on Mitsuba and Dr.Jit: the ray side of the one-pass CKM solver.
+
+:class:`Tracer` launches rays from a transmitter on a Fibonacci lattice, carries each ray's
+polarised field (a complex world-frame 3-vector started from the transmit element pattern of the
+Sionna scene's ``tx_array``), intersects the radio mesh (Mitsuba's preliminary intersection plus
+our own face-normal table, a third of the cost of a full surface interaction), reflects
+specularly with the ITU-R P.2040 slab TE/TM coefficients of the hit object's radio material, and
+hands every crossing of a grid height plane to a sink as numpy arrays (one call per segment and
+height). :func:`outdoor_fraction` measures how much of each cell lies outside buildings.
+Everything that depends on the scene, the grid or the device enters the kernels as opaque
+variables, so compiled kernels are reused across grids, tiles and transmitters.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.constants import epsilon_0
+
+OUTDOOR_SAMPLES_PER_AXIS = 4
+# Departure directions are quantised for the beam gains on a grid of 2**-13 in direction cosines
+# (device frame): a phase error below pi * 2**-13 * sqrt(3) * (largest element offset in
+# wavelengths) per element, 1.2e-3 rad for an 8 x 8 half-wavelength array. 15 bits per component.
+Q_BITS = 15
+DIRECTION_QUANTUM = 2.0**-13
+Q_OFFSET = 1 << 13
+_GOLDEN_RATIO = (1.0 + 5.0**0.5) / 2.0
+_SPAWN_EPSILON = 89.0 * 2.0**-24  # Mitsuba's RayEpsilon for float32
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A regular grid of cells on one or more horizontal planes: lower-left corner (m), cell size
+    (m), cell counts, plane heights (m); cell ``(h, row, col)`` is flat index ``(h * ny + row) * nx + col``."""
+
+    x_lo: float
+    y_lo: float
+    dx: float
+    dy: float
+    nx: int
+    ny: int
+    heights: np.ndarray
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return (len(self.heights), self.ny, self.nx)
+
+    def centres(self) -> np.ndarray:
+        """``[H * ny * nx, 3]`` cell centres, flat in C order of :attr:`shape`."""
+        h, y, x = np.meshgrid(self.heights, self.y_lo + (np.arange(self.ny) + 0.5) * self.dy,
+                              self.x_lo + (np.arange(self.nx) + 0.5) * self.dx, indexing="ij")
+        return np.stack([x.ravel(), y.ravel(), h.ravel()], -1)
+
+
+def _regular_axis(v, name: str) -> tuple[float, float | None]:
+    v = np.asarray(v, np.float64)
+    if v.ndim != 1 or v.size == 0 or not np.isfinite(v).all():
+        raise ValueError(f"{name}: expected a non-empty 1-D array of finite cell-centre coordinates")
+    if v.size == 1:
+        return float(v[0]), None
+    step = np.diff(v)
+    if step[0] <= 0 or not np.allclose(step, step[0], rtol=1e-6, atol=0):
+        raise ValueError(f"{name}: cell centres must be increasing and equally spaced")
+    return float(v[0]), float(step[0])
+
+
+def grid_from_centres(x_m, y_m, heights_m, cell_size_m: float | None = None) -> Grid:
+    """:class:`Grid` from cell-centre coordinates ``x_m [nx]``, ``y_m [ny]`` (increasing, equally
+    spaced; the spacing is the cell size) and ``heights_m [num_heights]``. ``cell_size_m`` (m)
+    gives the size of square cells where an axis has one cell, and must match the spacing
+    elsewhere."""
+    x0, dx = _regular_axis(x_m, "x_m")
+    y0, dy = _regular_axis(y_m, "y_m")
+    if cell_size_m is not None:
+        for name, step in (("x_m", dx), ("y_m", dy)):
+            if step is not None and not np.isclose(step, cell_size_m, rtol=1e-6, atol=0):
+                raise ValueError(f"{name}: spacing {step!r} m differs from cell_size_m {cell_size_m!r} m")
+        dx, dy = dx or float(cell_size_m), dy or float(cell_size_m)
+    if dx is None and dy is None:
+        raise ValueError("x_m, y_m: a single cell has no spacing to take the cell size from; "
+                         "pass cell_size_m")
+    dx, dy = dx or dy, dy or dx  # one-cell axis: square cells
+    h = np.atleast_1d(np.asarray(heights_m, np.float64))
+    if h.ndim != 1 or h.size == 0 or not np.isfinite(h).all():
+        raise ValueError("heights_m: expected one or more finite heights, m")
+    return Grid(x0 - dx / 2, y0 - dy / 2, dx, dy, len(np.atleast_1d(x_m)), len(np.atleast_1d(y_m)), h)
+
+
+def fibonacci_directions(start: int, stop: int, num_rays: int):
+    """Unit vectors (``mi.Vector3f``) of lattice points ``start..stop-1`` of the ``num_rays``-point
+    spherical Fibonacci lattice (Gonzalez 2010, Math. Geosci. 42: 49-64): ``z = 1 - 2 i / (N - 1)``,
+    azimuth ``2 pi frac(i / golden ratio)``, lattice arithmetic in float64 (exact indices up to
+    2**53), so a ray is the same whatever the batch that holds it."""
+    import drjit as dr
+    import mitsuba as mi
+
+    i = mi.Float64(dr.arange(mi.UInt32, start, stop))
+    z = mi.Float(1.0 - 2.0 * i / max(num_rays - 1, 1)) if num_rays > 1 else dr.zeros(mi.Float, stop - start)
+    frac = i / _GOLDEN_RATIO
+    phi = mi.Float(2.0 * np.pi * (frac - dr.floor(frac)))
+    r = dr.sqrt(dr.maximum(1.0 - z * z, 0.0))
+    sp, cp = dr.sincos(phi)
+    return mi.Vector3f(r * cp, r * sp, z)
+
+
+def _material_tables(radio) -> tuple[np.ndarray, ...]:
+    """Per Mitsuba shape id: complex relative permittivity (re, im), thickness m and the specular
+    amplitude factor ``sqrt(1 - S^2)``, from the Sionna scene's radio materials (weather applied).
+    Every shape the rays can hit must have a row (the kernels gather without bounds checks)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    omega = 2 * np.pi * float(radio.scene.frequency[0])
+    rows = {}
+    for name, obj in radio.scene.objects.items():
+        m = obj.radio_material
+        try:
+            eps, sigma, d = (float(np.array(getattr(m, k)).ravel()[0])
+                             for k in ("relative_permittivity", "conductivity", "thickness"))
+        except AttributeError:
+            raise ValueError(f"{radio.scene_xml}: object {name!r} has radio material {m.name!r} of type "
+                             f"{type(m).__name__}, which has no permittivity, conductivity and thickness; "
+                             "the one-pass solver knows only RadioMaterial / ITURadioMaterial") from None
+        s = float(np.array(getattr(m, "scattering_coefficient", 0.0)).ravel()[0])
+        rows[int(obj.object_id)] = (eps, -sigma / (epsilon_0 * omega), d, np.sqrt(max(1.0 - s * s, 0.0)))
+    for shape in radio.scene.mi_scene.shapes():
+        if int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape))[0]) not in rows:
+            raise ValueError(f"{radio.scene_xml}: shape {shape.id()!r} is not a Sionna scene object with a "
+                             "radio material")
+    size = max(rows, default=0) + 1
+    table = np.zeros((4, size))
+    table[:, 0] = (1.0, 0.0, 0.0, 0.0)  # id 0 (no shape) never reflects: vacuum, no thickness
+    for k, row in rows.items():
+        table[:, k] = row
+    return tuple(table)
+
+
+def _face_normal_tables(mi_scene, source) -> tuple[np.ndarray, np.ndarray]:
+    """Unit geometric normals of every triangle of every mesh ``[total_faces, 3]`` (Mitsuba's
+    ``normalize(cross(p1 - p0, p2 - p0))``) and, per Mitsuba shape id, the index of its first face."""
+    import drjit as dr
+    import mitsuba as mi
+
+    normals, first = [], {}
+    total = 0
+    for shape in mi_scene.shapes():
+        if not shape.is_mesh():
+            raise ValueError(f"{source}: shape {shape.id()!r} is not a triangle mesh; the one-pass solver "
+                             "reflects on meshes only")
+        v = shape.vertex_positions_buffer().numpy().reshape(-1, 3).astype(np.float64)
+        f = shape.faces_buffer().numpy().reshape(-1, 3).astype(np.int64)
+        nrm = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+        nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+        first[int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape))[0])] = total
+        normals.append(nrm)
+        total += len(f)
+    offsets = np.zeros(max(first, default=0) + 1, np.int64)
+    for k, v in first.items():
+        offsets[k] = v
+    return (np.concatenate(normals) if normals else np.zeros((1, 3))), offsets
+
+
+def _complex_sqrt(dr, re, im):
+    """Principal square root of ``re + j im`` (Dr.Jit floats)."""
+    r = dr.sqrt(re * re + im * im)
+    out_re = dr.sqrt(dr.maximum(0.5 * (r + re), 0.0))
+    out_im = dr.sqrt(dr.maximum(0.5 * (r - re), 0.0))
+    return out_re, dr.select(im < 0, -out_im, out_im)
+
+
+def _cdiv(dr, ar, ai, br, bi):
+    den = dr.rcp(br * br + bi * bi)
+    return (ar * br + ai * bi) * den, (ai * br - ar * bi) * den
+
+
+def _cmul(ar, ai, br, bi):
+    return ar * br - ai * bi, ar * bi + ai * br
+
+
+def _slab_reflection(dr, cos_i, eta_re, eta_im, thickness, wavelength):
+    """ITU-R P.2040-3 single-layer slab reflection coefficients (eqs. 37, 43a, 44): returns
+    (R_TE, R_TM) as (re, im) pairs. Half-space Fresnel ``R'`` then
+    ``R = R' (1 - e^{-j2q}) / (1 - R'^2 e^{-j2q})``, ``q = 2 pi d / lambda sqrt(eta - sin^2)``."""
+    sr, si = _complex_sqrt(dr, eta_re - (1.0 - cos_i * cos_i), eta_im)
+    te = _cdiv(dr, cos_i - sr, -si, cos_i + sr, si)
+    ec_re, ec_im = eta_re * cos_i, eta_im * cos_i
+    tm = _cdiv(dr, ec_re - sr, ec_im - si, ec_re + sr, ec_im + si)
+    k = 2.0 * dr.pi * thickness / wavelength
+    # exp(-j 2 q) with q = k (sr + j si): magnitude exp(2 k si) (si <= 0: decays), phase -2 k sr
+    mag = dr.exp(2.0 * k * si)
+    s2, c2 = dr.sincos(2.0 * k * sr)
+    xr, xi = mag * c2, -mag * s2
+    out = []
+    for rr, ri in (te, tm):
+        num = _cmul(rr, ri, 1.0 - xr, -xi)
+        r2r, r2i = _cmul(rr, ri, rr, ri)
+        pr, pi_ = _cmul(r2r, r2i, xr, xi)
+        out.append(_cdiv(dr, num[0], num[1], 1.0 - pr, -pi_))
+    return out
+
+
+class Tracer:
+    """Dr.Jit side: launch, intersect, deposit, reflect; hands deposits to numpy per segment."""
+
+    def __init__(self, radio, tx_position_m, tx_rotation: np.ndarray, grid: Grid, num_rays: int,
+                 max_depth: int, los: bool, rx_polarization: str | None, with_beams: bool = False):
+        import drjit as dr
+        import mitsuba as mi
+
+        self.dr, self.mi = dr, mi
+        self.scene = radio.scene.mi_scene
+        patterns = radio.scene.tx_array.antenna_pattern.patterns
+        if len(patterns) != 1:
+            raise ValueError(f"{radio.scene_xml}: the transmit array has {len(patterns)} polarisation "
+                             "directions; the one-pass solver supports single-polarised arrays (V or H)")
+        self.pattern = patterns[0]
+        # Scene-, grid- and device-dependent numbers enter the kernels as opaque variables, not
+        # literals, so the compiled kernels are reused across grids, tiles and transmitters.
+        def opaque(v, t=mi.Float):
+            return dr.opaque(t, v)
+
+        self.tx = [opaque(float(v)) for v in np.asarray(tx_position_m, np.float64)]
+        self.rot = [[opaque(float(v)) for v in row] for row in np.asarray(tx_rotation, np.float64)]
+        self.grid = grid
+        self.g = dict(x_lo=opaque(grid.x_lo), y_lo=opaque(grid.y_lo), dx=opaque(grid.dx), dy=opaque(grid.dy),
+                      nx=opaque(float(grid.nx)), ny=opaque(float(grid.ny)), nx_int=opaque(grid.nx, mi.UInt32))
+        self.heights = [(opaque(float(h)), opaque(k * grid.ny * grid.nx, mi.UInt32))
+                        for k, h in enumerate(grid.heights)]
+        self.num_rays = num_rays
+        self.max_depth = max_depth
+        self.los = los
+        self.rx_polarization = rx_polarization
+        self.with_beams = with_beams
+        self.wavelength = opaque(radio.wavelength_m)
+        eta_re, eta_im, thick, spec = _material_tables(radio)
+        normals, offsets = _face_normal_tables(self.scene, radio.scene_xml)
+        self.face_normals = mi.Vector3f(*(normals[:, k].astype(np.float32) for k in range(3)))
+        self.face_offset = mi.UInt32(offsets.astype(np.uint32))
+        self.mat = tuple(mi.Float(np.asarray(a, np.float32)) for a in (eta_re, eta_im, thick, spec))
+        # p = |E|^2 * solid angle / |cos| * (lambda / 4 pi)^2 / cell area (RadioMapSolver's estimator)
+        self.power_scale = opaque((4 * np.pi / num_rays) * (radio.wavelength_m / (4 * np.pi)) ** 2
+                                  / (grid.dx * grid.dy))
+
+    def launch(self, start: int, stop: int):
+        dr, mi = self.dr, self.mi
+        d = fibonacci_directions(start, stop, self.num_rays)
+        # field from the element pattern, evaluated in the transmitter's own frame
+        R = self.rot
+        dl = [sum(R[i][k] * d[i] for i in range(3)) for k in range(3)]  # R^T d
+        theta = dr.acos(dr.clip(dl[2], -1.0, 1.0))
+        phi = dr.atan2(dl[1], dl[0])
+        c_theta, c_phi = self.pattern(theta, phi)
+        st, ct = dr.sincos(theta)
+        sp, cp = dr.sincos(phi)
+        th_l, ph_l = (ct * cp, ct * sp, -st), (-sp, cp, mi.Float(0.0))
+        th_w = mi.Vector3f(*(sum(R[k][i] * th_l[i] for i in range(3)) for k in range(3)))
+        ph_w = mi.Vector3f(*(sum(R[k][i] * ph_l[i] for i in range(3)) for k in range(3)))
+        e_re = dr.real(c_theta) * th_w + dr.real(c_phi) * ph_w
+        e_im = dr.imag(c_theta) * th_w + dr.imag(c_phi) * ph_w
+        n = stop - start
+        o = dr.zeros(mi.Point3f, n) + mi.Point3f(*self.tx)
+        eye = [mi.Vector3f(*(1.0 if i == k else 0.0 for i in range(3))) for k in range(3)]
+        mirror = [dr.zeros(mi.Vector3f, n) + e for e in eye]  # columns of the reflection product
+        return dict(o=o, d=d, e_re=e_re, e_im=e_im, length=dr.zeros(mi.Float, n), m0=mirror[0],
+                    m1=mirror[1], m2=mirror[2])
+
+    def _deposits(self, st, t_hit, height, cell_offset) -> dict[str, np.ndarray] | None:
+        dr, mi, g = self.dr, self.mi, self.g
+        o, d = st["o"], st["d"]
+        t_h = (height - o.z) / d.z
+        cross = (d.z != 0) & (t_h > 0) & (t_h < t_hit)
+        col = dr.floor((o.x + t_h * d.x - g["x_lo"]) / g["dx"])
+        row = dr.floor((o.y + t_h * d.y - g["y_lo"]) / g["dy"])
+        cross &= (col >= 0) & (col < g["nx"]) & (row >= 0) & (row < g["ny"])
+        idx = dr.compress(cross)
+        if dr.width(idx) == 0:
+            return None
+        take = {k: dr.gather(type(v), v, idx) for k, v in st.items()}
+        col, row = dr.gather(mi.Float, col, idx), dr.gather(mi.Float, row, idx)
+        d = take["d"]
+        centre = mi.Point3f(g["x_lo"] + (col + 0.5) * g["dx"], g["y_lo"] + (row + 0.5) * g["dy"], height)
+        v = centre - (take["o"] - take["length"] * d)  # cell centre minus the image source
+        dist = dr.norm(v)
+        d_c = v / dist
+        d_dep = mi.Vector3f(dr.dot(take["m0"], d_c), dr.dot(take["m1"], d_c), dr.dot(take["m2"], d_c))
+        e_re, e_im = take["e_re"], take["e_im"]
+        if self.rx_polarization is None:
+            field2 = dr.squared_norm(e_re) + dr.squared_norm(e_im)
+        else:  # isotropic element of one polarisation: project on theta-hat or phi-hat of the
+            # ray's own arrival direction (the power is the cell mean, so is its projection)
+            rho = dr.sqrt(d.x * d.x + d.y * d.y)
+            safe = rho > 1e-7
+            cphi = dr.select(safe, d.x / rho, 1.0)
+            sphi = dr.select(safe, d.y / rho, 0.0)
+            if self.rx_polarization == "V":
+                u = mi.Vector3f(d.z * cphi, d.z * sphi, -rho)
+            else:
+                u = mi.Vector3f(-sphi, cphi, 0.0)
+            field2 = dr.square(dr.dot(e_re, u)) + dr.square(dr.dot(e_im, u))
+        power = field2 * self.power_scale / dr.abs(d.z)
+        cell = cell_offset + mi.UInt32(row) * g["nx_int"] + mi.UInt32(col)
+        out = dict(cell=cell, power=power, dist=dist)
+        # cos and sin of azimuth and zenith, arrival then departure (ANGLES order); arrival angles
+        # are those of -d_c, towards where the wave comes from, as PathSolver's
+        for k, u in enumerate((-d_c, d_dep)):
+            rho = dr.sqrt(dr.maximum(u.x * u.x + u.y * u.y, 0.0))
+            safe = rho > 0
+            out[f"cos{2 * k}"] = dr.select(safe, u.x / rho, 1.0)
+            out[f"sin{2 * k}"] = dr.select(safe, u.y / rho, 0.0)
+            out[f"cos{2 * k + 1}"] = dr.clip(u.z, -1.0, 1.0)
+            out[f"sin{2 * k + 1}"] = rho
+        if self.with_beams:  # departure direction in the device frame, quantised (see _beams)
+            key = mi.UInt64(0)
+            for k in range(3):
+                c = sum(self.rot[i][k] * d_dep[i] for i in range(3))
+                q = mi.UInt64(mi.Int32(dr.round(c * (1.0 / DIRECTION_QUANTUM))) + Q_OFFSET)
+                key = (key << Q_BITS) | q
+            out["dkey"] = key
+        dr.eval(*out.values())
+        return {k: v.numpy() for k, v in out.items()}
+
+    def _reflect(self, st, t, ids, prim, keep):
+        dr, mi = self.dr, self.mi
+        d = st["d"]
+        # misses carry no valid triangle index: never gather with it (no bounds checks)
+        face = dr.gather(mi.UInt32, self.face_offset, ids, keep) + dr.select(keep, prim, 0)
+        n = dr.gather(mi.Vector3f, self.face_normals, face, keep)
+        n = dr.select(dr.dot(d, n) > 0, -n, n)
+        cos_i = dr.clip(-dr.dot(d, n), 0.0, 1.0)
+        eta_re, eta_im, thick, spec = (dr.gather(mi.Float, table, ids, keep) for table in self.mat)
+        (te_r, te_i), (tm_r, tm_i) = _slab_reflection(dr, cos_i, eta_re, eta_im, thick, self.wavelength)
+        e_s = dr.cross(d, n)
+        ls = dr.norm(e_s)
+        e_s = dr.select(ls > 1e-6, e_s / dr.maximum(ls, 1e-30), mi.coordinate_system(n)[0])
+        d_r = d + 2.0 * cos_i * n
+        e_pi, e_pr = dr.cross(e_s, d), dr.cross(e_s, d_r)
+        er, ei = st["e_re"], st["e_im"]
+        s_r, s_i = dr.dot(er, e_s), dr.dot(ei, e_s)
+        p_r, p_i = dr.dot(er, e_pi), dr.dot(ei, e_pi)
+        a_r, a_i = _cmul(te_r, te_i, s_r, s_i)
+        b_r, b_i = _cmul(tm_r, tm_i, p_r, p_i)
+        p = st["o"] + t * d
+        # leave the face on the side the ray came from, like Mitsuba's spawn_ray offset
+        offset = (1.0 + dr.max(dr.abs(p))) * _SPAWN_EPSILON
+        new = dict(
+            o=mi.Point3f(p + offset * n), d=d_r,
+            e_re=spec * (a_r * e_s + b_r * e_pr), e_im=spec * (a_i * e_s + b_i * e_pr),
+            length=st["length"] + t,
+            **{k: st[k] - 2.0 * dr.dot(n, st[k]) * n for k in ("m0", "m1", "m2")})
+        dr.eval(*new.values(), keep)
+        idx = dr.compress(keep)
+        if dr.width(idx) == 0:
+            return None
+        out = {k: dr.gather(type(v), v, idx) for k, v in new.items()}
+        dr.eval(*out.values())
+        return out
+
+    def trace(self, start: int, stop: int, sink) -> None:
+        """Trace lattice rays ``start..stop-1``; ``sink(deposits, line_of_sight)`` per crossing set."""
+        dr, mi = self.dr, self.mi
+        if stop <= start:
+            return
+        st = self.launch(start, stop)
+        dr.eval(*st.values())
+        for depth in range(self.max_depth + 1):
+            # the preliminary intersection (distance, shape, triangle) is a third of the cost of a
+            # full surface interaction; face normals come from our own table
+            pi = self.scene.ray_intersect_preliminary(mi.Ray3f(st["o"], st["d"]), False)
+            hit = pi.is_valid()
+            t_hit = dr.select(hit, pi.t, dr.inf)
+            ids = dr.reinterpret_array(mi.UInt32, pi.shape)
+            prim = pi.prim_index
+            dr.eval(t_hit, hit, ids, prim)
+            if depth > 0 or self.los:
+                for height, cell_offset in self.heights:
+                    dep = self._deposits(st, t_hit, height, cell_offset)
+                    if dep is not None:
+                        sink(dep, depth == 0)
+            if depth == self.max_depth:
+                break
+            st = self._reflect(st, t_hit, ids, prim, hit)
+            if st is None:
+                break
+
+
+def outdoor_fraction(radio, x_m, y_m, heights_m, samples_per_axis: int = OUTDOOR_SAMPLES_PER_AXIS,
+                     cell_size_m: float | None = None) -> np.ndarray:
+    """Share of each cell's area outside buildings, ``[num_heights, ny, nx]``, from
+    ``samples_per_axis**2`` points per cell. A point is inside when rays cast from it upwards
+    cross the radio mesh an odd number of times (the majority of three rays, straight up and
+    tilted 30 degrees two ways): closed meshes of either face orientation (Sionna's bundled
+    scenes have inward normals), roofs without floors and the open ground all read right."""
+    import drjit as dr
+    import mitsuba as mi
+
+    g = grid_from_centres(x_m, y_m, heights_m, cell_size_m)
+    off = (np.arange(samples_per_axis) + 0.5) / samples_per_axis - 0.5
+    c = g.centres()
+    px = c[:, 0, None, None] + off[None, None, :] * g.dx + 0 * off[None, :, None]
+    py = c[:, 1, None, None] + off[None, :, None] * g.dy + 0 * off[None, None, :]
+    pz = np.broadcast_to(c[:, 2, None, None], px.shape)
+    pts = [np.ascontiguousarray(a, np.float32).ravel() for a in (px, py, pz)]
+    n = pts[0].size
+    votes = np.zeros(n, np.int64)
+    tilt = np.radians(30.0)
+    scene = radio.scene.mi_scene
+    for d in ((0.0, 0.0, 1.0), (np.sin(tilt), 0.0, np.cos(tilt)), (0.0, np.sin(tilt), np.cos(tilt))):
+        dv = mi.Vector3f(*(float(v) for v in d))
+        o = mi.Point3f(*pts)
+        alive = dr.arange(mi.UInt32, n)  # sample index of each ray still inside the scene
+        crossings = dr.zeros(mi.UInt32, n)
+        for _ in range(256):  # more faces than any city stacks above one point
+            pi = scene.ray_intersect_preliminary(mi.Ray3f(o, dr.zeros(mi.Vector3f, dr.width(o)) + dv), False)
+            hit = pi.is_valid()
+            # step just past the face (Mitsuba's ray epsilon, relative to the coordinates)
+            p = o + pi.t * dv
+            p_next = mi.Point3f(p + (1.0 + dr.max(dr.abs(p))) * _SPAWN_EPSILON * 4 * dv)
+            dr.eval(hit, p_next)
+            idx = dr.compress(hit)
+            if dr.width(idx) == 0:
+                break
+            alive = dr.gather(mi.UInt32, alive, idx)
+            dr.scatter_add(crossings, mi.UInt32(1), alive)
+            o = dr.gather(mi.Point3f, p_next, idx)
+            dr.eval(alive, o, crossings)
+        votes += crossings.numpy() % 2
+    inside = (votes >= 2).reshape(len(c), -1)
+    return (1.0 - inside.mean(axis=1)).reshape(g.shape)
+
+
