@@ -56,3 +56,15 @@ def ground_square(size_m: float = 2000.0):
     h = size_m / 2
     return trimesh.Trimesh([[-h, -h, 0], [h, -h, 0], [h, h, 0], [-h, h, 0]], [[0, 1, 2], [0, 2, 3]],
                            process=False)
+
+
+def scene_config(scene_dir, edit=None):
+    """The SceneConfig of ``scene_dir/scene.yaml``, after ``edit(raw_dict)`` if given."""
+    import yaml
+
+    from simart_pipeline.config import SceneConfig
+
+    raw = yaml.safe_load((Path(scene_dir) / "scene.yaml").read_text())
+    if edit:
+        edit(raw)
+    return SceneConfig.model_validate(raw)

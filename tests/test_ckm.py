@@ -1,7 +1,6 @@
 """Channel knowledge maps: analytic cells (two-ray, single path, metal wall), masks, link layers,
 and the mosaic store's tile backfill equivalence."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,26 +8,20 @@ import scipy.constants as const
 import shapely
 import trimesh
 import xarray as xr
-import yaml
-from conftest import ground_square, write_radio_scene
+from conftest import scene_config, ground_square, write_radio_scene
 
 from simart_pipeline import provenance
 from simart_pipeline.ckm import mosaic
 from simart_pipeline.ckm.grid import chunk_shape, scene_tiles, tile_slices
 from simart_pipeline.ckm.layers import tile_layers
 from simart_pipeline.ckm.maps import map_groups, map_template
-from simart_pipeline.config import SceneConfig
 from simart_pipeline.radio.tracer import RadioScene
 from simart_pipeline.scene import geometry, meshes
 
 FC = 3.5e9
 
 
-def _cfg(scene_dir, edit=None) -> SceneConfig:
-    raw = yaml.safe_load((Path(scene_dir) / "scene.yaml").read_text())
-    if edit:
-        edit(raw)
-    return SceneConfig.model_validate(raw)
+_cfg = scene_config  # the scene's config after an edit of its raw YAML
 
 
 def _single_bs_iso(raw, ckm=None, position=(0.0, 0.0, 20.0)):

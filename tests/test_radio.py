@@ -9,7 +9,7 @@ import scipy.constants as const
 import trimesh
 import yaml
 
-from conftest import ground_square, write_radio_scene
+from conftest import scene_config, ground_square, write_radio_scene
 
 from simart_pipeline import stores
 from simart_pipeline.config import SceneConfig, load_scene_config
@@ -23,11 +23,7 @@ from simart_pipeline.scene import meshes
 FC = 3.5e9
 
 
-def _cfg(scene_dir, edit=None) -> SceneConfig:
-    raw = yaml.safe_load((Path(scene_dir) / "scene.yaml").read_text())
-    if edit:
-        edit(raw)
-    return SceneConfig.model_validate(raw)
+_cfg = scene_config  # the scene's config after an edit of its raw YAML
 
 
 def _iso(polarization="V", **rt):

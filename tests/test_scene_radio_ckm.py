@@ -1,21 +1,16 @@
 """Scene meshes, Sionna RT tracing and CKM tiles against geometry with known answers."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
 import shapely
-import yaml
 
-from simart_pipeline.config import SceneConfig
+from conftest import scene_config
+
 from simart_pipeline.scene import extrude, geometry, meshes
 
 
-def _cfg(scene_dir, edit=None) -> SceneConfig:
-    raw = yaml.safe_load((Path(scene_dir) / "scene.yaml").read_text())
-    if edit:
-        edit(raw)
-    return SceneConfig.model_validate(raw)
+_cfg = scene_config  # the scene's config after an edit of its raw YAML
 
 
 def _iso(raw):
