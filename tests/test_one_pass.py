@@ -319,6 +319,21 @@ def test_direction_groups_are_the_same_with_one_key_or_two():
     assert (np.diff(small[0]) >= 0).all()
 
 
+def test_accumulation_runs_in_order_and_its_errors_surface():
+    seen = []
+
+    def accumulate(k):
+        seen.append(k)
+        if k == 5:
+            raise RuntimeError("bad deposit set 5")
+
+    with pytest.raises(RuntimeError, match="bad deposit set 5"):
+        with op._InOrderWorker(accumulate, max_pending=2) as sink:
+            for k in range(8):
+                sink(k)
+    assert seen == list(range(8))
+
+
 def test_empty_batches_and_rays_that_reach_nothing(free_space):
     x, y = _axes(0.0, 4, 0.0, 4, 1.0)
     # every ray of free space leaves the scene after its first segment: the wavefront empties

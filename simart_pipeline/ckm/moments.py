@@ -16,8 +16,9 @@ Definitions (p: the power gain of a path or of a ray tube deposit, element to el
   3GPP TR 38.901 Annex A.1, ``sqrt(-2 ln R)`` with ``R = |sum p exp(j x)| / G``, for the azimuth
   and the zenith of arrival (ASA, ZSA) and of departure (ASD, ZSD), in degrees.
 - LoS power fraction ``sum over line-of-sight contributions p / G``; LoS flag: fraction > 0.5.
-- beam gain of beam b: ``sum p |w_b^H v(u_dep)|^2`` (incoherent over paths: no inter-path phase),
-  ``w_b`` the unit-norm codebook vector and ``v`` the transmit array response.
+- beam gain of beam b: ``sum p |w_b^T v(u_dep)|^2`` (incoherent over paths: no inter-path phase),
+  ``w_b`` the unit-norm precoder as the codebook stores it (no conjugation, as ``link.beams``) and
+  ``v`` the transmit array response.
 """
 
 from __future__ import annotations
