@@ -21,12 +21,13 @@ import trimesh
 import yaml
 from scipy.spatial.transform import Rotation
 
+from conftest import write_radio_scene
+
 from simart_pipeline.ckm import one_pass as op
 from simart_pipeline.ckm import shoot_bounce as sb
 from simart_pipeline.ckm.moments import CellMoments
 from simart_pipeline.config import SceneConfig
 from simart_pipeline.link.beams import dft_codebook
-from simart_pipeline.radio import materials
 from simart_pipeline.radio.tracer import RadioScene
 
 TESTS = Path(__file__).resolve().parent
@@ -43,17 +44,7 @@ def _cfg(rows=1, cols=1, pattern="iso", polarization="V") -> SceneConfig:
 
 
 def _write_scene(out: Path, parts: dict[str, tuple[trimesh.Trimesh, str]], thickness_m: float) -> Path:
-    (out / "meshes").mkdir(parents=True)
-    lines = ['<scene version="2.1.0">']
-    for mat in sorted({m for _, m in parts.values()}):
-        lines.append(materials.bsdf_xml(mat, FC, thickness_m))
-    for name, (mesh, mat) in sorted(parts.items()):
-        mesh.export(out / "meshes" / f"{name}.ply", encoding="binary")
-        lines.append(f'<shape type="ply" id="{name}"><string name="filename" value="meshes/{name}.ply"/>'
-                     f'<boolean name="face_normals" value="true"/><ref id="{materials.bsdf_id(mat)}" name="bsdf"/></shape>')
-    lines.append("</scene>")
-    (out / "scene.xml").write_text("\n".join(lines))
-    return out / "scene.xml"
+    return write_radio_scene(out, parts, FC, thickness_m)
 
 
 def _quad(corners) -> trimesh.Trimesh:

@@ -4,7 +4,6 @@ scene's map gathers pictures of every layer."""
 import time
 
 import dagster as dg
-import numpy as np
 import xarray as xr
 
 from simart_pipeline import previews, provenance
@@ -24,7 +23,7 @@ def ckm_layers(context: dg.AssetExecutionContext, project: ProjectResource, ray_
                paired_meshes: SceneMeshes, osm_extract: xr.Dataset) -> dg.MaterializeResult:
     """Every CKM layer of one tile, for each set of radio materials, written into its chunk-aligned
     region of the scene's mosaic store (``ckm/<scene>/<materials>.zarr``)."""
-    from simart_pipeline.ckm.layers import tile_layers
+    from simart_pipeline.ckm.layers import tile_grid, tile_layers
 
     scene, tile = split_key(context.partition_key)
     cfg = project.config(scene)
@@ -33,9 +32,11 @@ def ckm_layers(context: dg.AssetExecutionContext, project: ProjectResource, ray_
         return dg.MaterializeResult(metadata={"in_scene_tiling": False, "cells_traced": 0})
     geom = geometry.from_dataset(osm_extract.load())
     meta = {"in_scene_tiling": True, "mode": cfg.ckm.mode}
+    grid = tile_grid(cfg, geom, tile)
     for name, weathers in map_groups(cfg).items():
-        radio = ray_tracer.load(paired_meshes, cfg, name)
-        ds = tile_layers(radio, cfg, geom, tile, project.scene_dir(scene))
+        # A tile whose cells are all masked loads no scene.
+        radio = ray_tracer.load(paired_meshes, cfg, name) if grid.traced.any() else None
+        ds = tile_layers(radio, cfg, geom, tile, project.scene_dir(scene), grid)
         path = map_path(project.data_root, scene, name)
         spec, coords, attrs = map_template(cfg, ds, weathers,
                                            provenance.attrs(cfg, "ckm_layers", weathers=",".join(weathers)))
@@ -45,8 +46,7 @@ def ckm_layers(context: dg.AssetExecutionContext, project: ProjectResource, ray_
         meta["cells_traced"] = int(ds.attrs["cells_traced"])
         meta[f"{name}_weathers"] = ", ".join(weathers)
     meta["compute_s"] = round(time.perf_counter() - t0, 2)
-    cells = int(np.prod([len(range(*s.indices(10**9))) for s in tile_slices(cfg.ckm, tile)]))
-    meta["cells"] = cells * len(cfg.ckm.heights)
+    meta["cells"] = int(grid.traced.size)
     if meta["cells_traced"]:
         meta["cells_per_s"] = round(meta["cells_traced"] / max(meta["compute_s"], 1e-9), 1)
     return dg.MaterializeResult(metadata=meta)

@@ -133,38 +133,35 @@ def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, t
     return mom.CellMoments(**stacked)
 
 
-def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_dir=None) -> xr.Dataset:
+def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_dir=None,
+                grid: TileGrid | None = None) -> xr.Dataset:
     """Every layer of tile ``tile`` over (bs, height, y, x) and (height, y, x); ``radio`` (a
     ``RadioScene``) may be None when the tile has no cell to trace; ``scene_dir`` resolves
-    ``codebook.path``."""
+    ``codebook.path``; ``grid`` is ``tile_grid(cfg, geom, tile)`` if the caller has it already."""
     from simart_pipeline.ckm.link_layers import link_layers
 
-    grid = tile_grid(cfg, geom, tile)
+    grid = tile_grid(cfg, geom, tile) if grid is None else grid
     B, H = len(cfg.base_stations), len(grid.heights)
     shape = (B, H, len(grid.y), len(grid.x))
     traced = grid.traced
     n_traced = int(traced.sum())
-    num_beams = codebook_weights(cfg, None, scene_dir).shape[0]
-    m = mom.CellMoments.zeros(shape, num_beams)
-    coherent = np.zeros(shape)
-    if n_traced:
-        if radio is None:
-            raise ValueError(f"tile {tile}: {n_traced} cells to trace but no radio scene given")
-        tx_ant = radio.array_positions_m("tx")
-        weights = codebook_weights(cfg, tx_ant, scene_dir)
-        if cfg.ckm.mode == "reference":
-            hh, yy, xx = np.meshgrid(grid.heights, grid.y, grid.x, indexing="ij")
-            pts = np.column_stack([xx[traced], yy[traced], hh[traced]])
-            mt, coh = reference_moments(radio, cfg, pts, weights)
-            m = mom.CellMoments.zeros(shape, num_beams)
-            for f in mom.CellMoments.__dataclass_fields__:
-                getattr(m, f)[:, traced] = getattr(mt, f)
-            coherent[:, traced] = coh
-        else:
-            m = fast_moments(radio, cfg, grid, weights, tx_ant)
-            coherent[:] = np.nan
-    tx = np.array([b.position_m for b in cfg.base_stations], np.float64)
+    if n_traced and radio is None:
+        raise ValueError(f"tile {tile}: {n_traced} cells to trace but no radio scene given")
+    tx_ant = radio.array_positions_m("tx") if n_traced else None
+    weights = codebook_weights(cfg, tx_ant, scene_dir)
     hh, yy, xx = np.meshgrid(grid.heights, grid.y, grid.x, indexing="ij")
+    m = mom.CellMoments.zeros(shape, weights.shape[0])
+    coherent = np.zeros(shape)
+    if n_traced and cfg.ckm.mode == "reference":
+        pts = np.column_stack([xx[traced], yy[traced], hh[traced]])
+        mt, coh = reference_moments(radio, cfg, pts, weights)
+        for f in mom.CellMoments.__dataclass_fields__:
+            getattr(m, f)[:, traced] = getattr(mt, f)
+        coherent[:, traced] = coh
+    elif n_traced:
+        m = fast_moments(radio, cfg, grid, weights, tx_ant)
+        coherent[:] = np.nan
+    tx = np.array([b.position_m for b in cfg.base_stations], np.float64)
     centre = np.stack([xx, yy, hh], -1)
     m.tau0_s = np.linalg.norm(centre[None] - tx[:, None, None, None, :], axis=-1) / speed_of_light
     # Masked cells hold nothing, whatever a solver deposited there.
