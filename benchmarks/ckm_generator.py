@@ -6,12 +6,20 @@ On the same scene, grid and solver settings, in one run:
 
 - the generator: every cell of the scene's grid through ``ckm.layers.tile_layers`` (cells batched
   per tile into as few PathSolver calls as memory allows, every layer vectorised), tile by tile;
-- the loop: a random subset of the same traced cells, one ``PathSolver`` call per cell (one
-  receiver each, as SimART does), reduced to layers by the same code.
+- the loop: a random subset of the same traced cells, one cell at a time through the same
+  ``tile_layers`` on a one-cell grid: one ``PathSolver`` call with one receiver and that cell's
+  layers, link layers included (SimART's way: trace a cell, reduce it, go on).
 
 It prints (and writes to ``DIR/results.json``) cells per second of both, the speed-up, and the
 largest difference between the two on the looped cells for every layer (they must agree: the
-solver is deterministic and per-receiver results do not depend on the batch).
+solver's paths for a receiver do not depend on the other receivers of the call).
+
+It also reads Dr.Jit's kernel history of one call with one receiver and one with many: the
+shoot-and-bounce kernel tests every ray's interaction points for visibility of every receiver, so
+its time is ``fixed + per_receiver x receivers``. A call with one receiver costs ``fixed +
+per_receiver`` plus Python; batching removes everything but ``per_receiver``. The ratio
+``one_receiver_call_s / per_receiver_kernel_s`` (``speedup_bound_from_kernels``) bounds what any
+batching of this solver can gain over the loop on this machine.
 """
 
 from __future__ import annotations
@@ -26,14 +34,49 @@ import numpy as np
 
 from benchmarks.common import DEMO, build_scene
 from simart_pipeline import engine
-from simart_pipeline.ckm import moments as mom
 from simart_pipeline.ckm.grid import scene_tiles
-from simart_pipeline.ckm.layers import codebook_weights, reference_moments, tile_grid, tile_layers
+from simart_pipeline.ckm.layers import TileGrid, tile_grid, tile_layers
 from simart_pipeline.config import load_scene_config
 from simart_pipeline.radio.tracer import RadioScene
 
-COMPARED = ("path_gain_db", "toa_s", "mean_delay_s", "rms_delay_spread_s", "asa_deg", "asd_deg",
-            "zsa_deg", "zsd_deg", "los_power_fraction", "best_beam_gain_db")
+COMPARED = ("path_gain_db", "path_gain_coherent_db", "rx_power_dbm", "toa_s", "mean_delay_s",
+            "rms_delay_spread_s", "asa_deg", "asd_deg", "zsa_deg", "zsd_deg", "los_power_fraction",
+            "count", "best_beam", "best_beam_gain_db", "beam_gain_db", "best_bs", "sinr_db", "effective_sinr_db",
+            "mcs_index", "bler", "tbler", "rate_bps", "shannon_rate_bps")
+
+
+def one_cell(grids: dict, tile: str, h: int, i: int, j: int) -> TileGrid:
+    """Cell (h, i, j) of ``tile`` as a grid of its own (traced, nothing masked)."""
+    g = grids[tile]
+    return TileGrid(tile, g.rows[i:i + 1], g.cols[j:j + 1], g.y[i:i + 1], g.x[j:j + 1], g.heights[h:h + 1],
+                    np.zeros((1, 1, 1), bool), np.zeros((1, 1), bool))
+
+
+def kernel_costs(radio: RadioScene, cfg, grids: dict, many: int = 200) -> dict[str, float]:
+    """Wall time of a one-receiver call, and the shoot-and-bounce kernel's fixed and per-receiver
+    time (Dr.Jit kernel history of calls with 1 and ``many`` receivers)."""
+    import drjit as dr
+
+    pts = np.concatenate([np.stack(np.broadcast_arrays(*np.meshgrid(g.x, g.y, indexing="xy"),
+                                                       g.heights[0]), -1)[g.traced[0]] for g in grids.values()])
+    pts = pts[np.random.default_rng(1).choice(len(pts), min(many, len(pts)), replace=False)]
+    tx = np.array([b.position_m for b in cfg.base_stations], np.float64)
+    ori = np.deg2rad(np.array([b.orientation_deg for b in cfg.base_stations], np.float64))
+    det = cfg.ckm.deterministic_solver
+    out = {}
+    for n in (1, len(pts)):
+        radio.grid_scan(tx, ori, pts[:n], deterministic=det)  # compiled before timing
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        t0 = time.perf_counter()
+        radio.grid_scan(tx, ori, pts[:n], deterministic=det)
+        wall = time.perf_counter() - t0
+        hist = dr.kernel_history()
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+        out[n] = (wall, max(k.get("execution_time", 0.0) for k in hist) / 1e3)  # ms -> s
+    (wall1, k1), (_, kn) = out[1], out[len(pts)]
+    per_rx = (kn - k1) / (len(pts) - 1)
+    return {"one_receiver_call_s": round(wall1, 4), "shoot_bounce_kernel_fixed_s": round(k1 - per_rx, 4),
+            "per_receiver_kernel_s": round(per_rx, 5), "kernel_receivers": int(len(pts))}
 
 
 def main(argv=None) -> int:
@@ -55,7 +98,6 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         geom, scene_xml = build_scene(cfg, scene_dir, Path(tmp) / "pm")
         radio = RadioScene(scene_xml, cfg)
-        weights = codebook_weights(cfg, radio.array_positions_m("tx"))
         tiles = scene_tiles(cfg.ckm)
         tile_layers(radio, cfg, geom, tiles[0])  # warm-up: kernel compilation, for both sides
         t0 = time.perf_counter()
@@ -63,32 +105,27 @@ def main(argv=None) -> int:
         gen_s = time.perf_counter() - t0
         traced = sum(int(ds.attrs["cells_traced"]) for ds in maps.values())
 
-        # The loop: one PathSolver call per cell, on a random subset of the traced cells.
+        # The loop: one cell at a time (one PathSolver call each), on a random subset of the traced cells.
         rng = np.random.default_rng(0)
-        cells = []
-        for t, ds in maps.items():
-            g = tile_grid(cfg, geom, t)
-            for h, i, j in zip(*np.nonzero(g.traced)):
-                cells.append((t, h, i, j, np.array([g.x[j], g.y[i], g.heights[h]])))
+        grids = {t: tile_grid(cfg, geom, t) for t in tiles}
+        cells = [(t, h, i, j) for t, g in grids.items() for h, i, j in zip(*np.nonzero(g.traced))]
         pick = rng.choice(len(cells), size=min(args.loop_cells, len(cells)), replace=False)
-        reference_moments(radio, cfg, cells[pick[0]][4][None], weights)  # warm-up of the 1-receiver shape
+        tile_layers(radio, cfg, geom, cells[pick[0]][0], grid=one_cell(grids, *cells[pick[0]]))  # warm-up
         t0 = time.perf_counter()
-        looped = [reference_moments(radio, cfg, cells[k][4][None], weights) for k in pick]
+        looped = [tile_layers(radio, cfg, geom, cells[k][0], grid=one_cell(grids, *cells[k])) for k in pick]
         loop_s = time.perf_counter() - t0
+        kernels = kernel_costs(radio, cfg, grids)
     worst = {}
-    for (mts, _), k in zip(looped, pick):
-        t, h, i, j, pt = cells[k]
-        tx = np.array([b.position_m for b in cfg.base_stations])
-        mts.tau0_s = np.linalg.norm(pt[None] - tx, axis=-1)[:, None] / 299792458.0
-        one = mom.layers_from_moments(mts)
+    for one, k in zip(looped, pick):
+        t, h, i, j = cells[k]
         for name in COMPARED:
-            a = np.asarray(one[name])[:, 0].astype(np.float64)
-            b = maps[t][name].values[:, h, i, j].astype(np.float64)
+            a = one[name].isel(height=0, y=0, x=0).values.astype(np.float64)
+            b = maps[t][name].isel(height=h, y=i, x=j).values.astype(np.float64)
             both = np.isfinite(a) & np.isfinite(b)
             if (np.isfinite(a) != np.isfinite(b)).any():
                 worst[name] = float("inf")
-            elif both.any():
-                worst[name] = max(worst.get(name, 0.0), float(np.max(np.abs(a[both] - b[both]))))
+            else:
+                worst[name] = max(worst.get(name, 0.0), float(np.max(np.abs(a[both] - b[both]), initial=0.0)))
     gen_rate = traced / gen_s
     loop_rate = len(pick) / loop_s
     result = {
@@ -99,8 +136,10 @@ def main(argv=None) -> int:
         "loop_cells": int(len(pick)), "loop_s": round(loop_s, 3), "loop_cells_per_s": round(loop_rate, 2),
         "speedup_vs_per_cell_loop": round(gen_rate / loop_rate, 2),
         "max_abs_difference_on_looped_cells": worst,
-        "note": "generator: all traced cells of every tile, every layer (link layers included); loop: "
-                "one PathSolver call per cell on a random subset, propagation layers only",
+        **kernels,
+        "speedup_bound_from_kernels": round(kernels["one_receiver_call_s"] / kernels["per_receiver_kernel_s"], 2),
+        "note": "both sides: every layer (link layers included) through ckm.layers.tile_layers; generator: all "
+                "traced cells of every tile; loop: a one-cell grid per call on a random subset",
     }
     print(json.dumps(result, indent=2))
     if args.out:

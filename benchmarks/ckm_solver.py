@@ -198,9 +198,11 @@ def run_scene(name: str, spec: dict, num_rays: int, compare_cells: int, loop_cel
 def targets(r: dict) -> dict[str, bool | None]:
     """The issue's targets: speed-up >= 100 over one PathSolver call per cell; gain within 0.5 dB
     at p50 of the 3 x 3-point mean; ToA within 1 ns at p50 (at the centre: the layer's definition);
-    best beam equal to PathSolver's incoherent best (centre) in >= 95 % of cells."""
+    best beam equal to PathSolver's incoherent best in >= 95 % of cells, for the cell as the gain is
+    (the 3 x 3 points pooled): the layer is the best beam of the cell's mean beam gains, and where a
+    shadow edge crosses a cell the centre alone can prefer another beam (the report gives both)."""
     g, t = r["errors_vs_3x3_points"]["path_gain_db"]["p50"], r["errors_vs_centre"]["toa_ns"]["p50"]
-    b = r["errors_vs_centre"]["best_beam_agreement_pct"]
+    b = r["errors_vs_3x3_points"]["best_beam_agreement_pct"]
     return {"speedup_vs_per_cell_loop_ge_100": r["speedup_vs_per_cell_loop"] >= 100,
             "path_gain_p50_vs_3x3_le_0.5_db": None if g is None else g <= 0.5,
             "toa_p50_vs_centre_le_1_ns": None if t is None else t <= 1.0,
@@ -249,7 +251,8 @@ def report(results: dict) -> str:
                      f"{r['speedup_vs_per_cell_loop']} ({r['speedup_vs_per_cell_loop_all_cells']}) | "
                      f"{r['speedup_vs_batched_pathsolver']} |")
     lines += ["", "Targets of the issue (speed-up >= 100 x per-cell loop; gain p50 <= 0.5 dB vs the 3 x 3 "
-              "mean; ToA p50 <= 1 ns at the centre; best beam = PathSolver's incoherent best in >= 95 %):", ""]
+              "mean; ToA p50 <= 1 ns at the centre; best beam = PathSolver's incoherent best of the cell "
+              "(3 x 3 points pooled) in >= 95 %):", ""]
     for name, r in results["scenes"].items():
         lines.append(f"- {name}: " + ", ".join(f"{k} {'met' if v else 'NOT met' if v is False else 'n/a'}"
                                                 for k, v in r["targets_met"].items()))

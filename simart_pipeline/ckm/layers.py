@@ -98,8 +98,9 @@ def reference_moments(radio, cfg: SceneConfig, points: np.ndarray, weights: np.n
     beam = np.zeros(power.shape + (num_beams,))
     # Per-path beam gain, in chunks of cells to bound memory: mean_r |sum_n w_bn a_rnp|^2.
     per_cell = max(1, BEAM_CHUNK_BYTES // max(1, 16 * a[0].size * num_beams))
+    w_t = np.ascontiguousarray(weights.T)                   # [n, K]: a BLAS product, not einsum
     for s in range(0, len(points), per_cell):
-        y = np.einsum("kn,irbnp->irbpk", weights, a[s:s + per_cell])
+        y = np.swapaxes(a[s:s + per_cell], -1, -2) @ w_t     # [N, r, B, P, K]
         beam[s:s + per_cell] = np.mean(y.real**2 + y.imag**2, axis=1)
     m = mom.path_moments(power.transpose(1, 0, 2), p.tau_s.transpose(1, 0, 2),
                          p.valid.transpose(1, 0, 2), p.los.transpose(1, 0, 2),
