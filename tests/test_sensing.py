@@ -281,3 +281,52 @@ def test_time_grids_units_and_store(tmp_path):
     assert back["p0/cam"]["rgb"].encoding["chunks"] == (1, 48, 64, 3)
     assert back["p0/lidar"]["time"].dtype == np.int64
     np.testing.assert_array_equal(back["p0/cam"]["depth_m"].values, groups["/p0/cam"]["depth_m"].values)
+
+
+def test_street_lamps_over_the_road_light_it_by_inverse_square():
+    import dataclasses
+
+    from simart_pipeline.config import Camera
+    from simart_pipeline.sensing import camera
+    from simart_pipeline.sensing.weather import NIGHT
+
+    road = quad([(0, -3, 0.01), (60, -3, 0.01), (60, 3, 0.01), (0, 3, 0.01)], SemanticClass.ROAD, 5)
+    meshes = scene_of(GROUND, road)
+    lamps = camera.street_lamps(meshes, 30.0, 6.0)
+    on = lamps.position_m[lamps.present]
+    # Lattice from (0, -30): the road touches four 30 m cells, each gets the road point nearest its
+    # centre ((15 | 45, -15 | 15)), i.e. on the road's edges, 6 m up.
+    assert len(on) == 4 and lamps.present.sum() == 4
+    np.testing.assert_allclose(np.sort(on[:, 0]), [15, 15, 45, 45], atol=3.0)
+    assert np.all(np.abs(np.abs(on[:, 1]) - 3.0) < 1.0)
+    np.testing.assert_allclose(on[:, 2], 6.01, atol=1e-6)
+    assert camera.street_lamps(scene_of(GROUND), 30.0, 6.0) is None  # no road, no lamp
+
+    # Only the street lamps light the scene: the road point under a camera looking straight down
+    # shows albedo * sum_k I cos_k / r_k^2 over the four lamps (sRGB-encoded, 8 bit).
+    wx = dataclasses.replace(NIGHT, ambient_rgb=(0.0, 0.0, 0.0), lamp_intensity_rgb=(0.0, 0.0, 0.0),
+                             pixel_noise_std_dn=0.0, visibility_m=1e12)
+    cam = Camera(kind="camera", name="cam", width_px=9, height_px=9, horizontal_fov_deg=10.0)
+    caster = raycast.RayCaster(meshes)
+    eye = np.array([20.0, -1.0, 30.0])
+    down = Rotation.from_euler("y", 90.0, degrees=True) * frames.OPTICAL_TO_BODY
+    ds = camera.render_camera(caster, cam, np.array([0]), eye[None], down, wx, np.random.default_rng(0))
+    p = np.array([eye[0], eye[1], 0.01])
+    hit = caster.intersect(eye[None], np.array([[0.0, 0.0, -1.0]]))
+    assert hit.face[0] >= 0 and meshes.face_class[hit.face[0]] == SemanticClass.ROAD
+    v = on - p
+    r2 = (v ** 2).sum(1)
+    cos = v[:, 2] / np.sqrt(r2)
+    irradiance = np.asarray(wx.street_lamp_intensity_rgb)[None] * (cos / np.maximum(r2, 1.0))[:, None]
+    linear = camera.face_albedo(meshes)[hit.face[0]] * irradiance.sum(0)
+    expected = np.rint(255 * camera.srgb_encode(linear))
+    np.testing.assert_allclose(ds["rgb"].values[0, 4, 4].astype(float), expected, atol=1.0)
+    # A wide slab at 2.5-3.5 m between the road point and every lamp (6 m up) puts it in shadow.
+    box = trimesh.creation.box(extents=(40.0, 40.0, 1.0))
+    box.apply_translation((p[0], p[1], 3.0))
+    roofed = scene_of(GROUND, road, (box, np.full(len(box.faces), SemanticClass.BUILDING, np.uint8),
+                                     np.full(len(box.faces), WALL_ID, np.int64)))
+    low = np.array([p[0], p[1], 1.0])
+    dark = camera.render_camera(raycast.RayCaster(roofed), cam, np.array([0]), low[None], down, wx,
+                                np.random.default_rng(0))
+    np.testing.assert_array_equal(dark["rgb"].values[0, 4, 4], 0)

@@ -14,7 +14,10 @@ plane on z-depth): there depth is NaN, the labels are 0 and the pixel shows the 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+import trimesh
 import xarray as xr
 from scipy.spatial.transform import Rotation
 
@@ -34,7 +37,8 @@ CLASS_ALBEDO = {
     SemanticClass.VEHICLE: (0.50, 0.10, 0.10),
 }
 SHADING_MODEL = ("Lambert: per-class albedo (per-instance tint) x (ambient + sun with ray-cast shadows "
-                 "+ camera lamp cone, inverse square), distance haze, fixed exposure, sRGB 8-bit, "
+                 "+ camera lamp cone, inverse square + street lamps over the roads, inverse square, "
+                 "ray-cast shadows), distance haze, fixed exposure, sRGB 8-bit, "
                  "rain streaks and Gaussian pixel noise after tone mapping")
 
 
@@ -81,6 +85,45 @@ def face_albedo(meshes: SceneMeshes) -> np.ndarray:
     return base * lum[:, None] * np.where(building, tint, 1.0)
 
 
+@dataclass(frozen=True)
+class StreetLamps:
+    """Street lamps on a square lattice: ``position_m [ny * nx, 3]``, ``present [ny * nx]``; cell
+    ``(i, j)`` spans ``x0 + i * spacing .. x0 + (i + 1) * spacing`` (likewise ``y``)."""
+
+    x0_m: float
+    y0_m: float
+    spacing_m: float
+    nx: int
+    ny: int
+    position_m: np.ndarray
+    present: np.ndarray
+
+
+def street_lamps(meshes: SceneMeshes, spacing_m: float, height_m: float, seed: int = 0) -> StreetLamps | None:
+    """One lamp per lattice cell that holds road: ``height_m`` above the road point nearest the
+    cell's centre (road points: area-uniform samples of the visual mesh's road faces, one per
+    m^2 up to 10^6, seeded). None when the scene has no road."""
+    road = meshes.face_class == SemanticClass.ROAD
+    if not road.any():
+        return None
+    roads = trimesh.Trimesh(meshes.visual.vertices, meshes.visual.faces[road], process=False)
+    count = int(np.clip(roads.area, 1, 1_000_000))
+    pts, _ = trimesh.sample.sample_surface(roads, count, seed=seed)
+    x0, y0 = (np.floor(pts[:, k].min() / spacing_m) * spacing_m for k in (0, 1))
+    ci = np.floor((pts[:, 0] - x0) / spacing_m).astype(np.int64)
+    cj = np.floor((pts[:, 1] - y0) / spacing_m).astype(np.int64)
+    nx, ny = int(ci.max()) + 1, int(cj.max()) + 1
+    cell = cj * nx + ci
+    d2 = (pts[:, 0] - x0 - (ci + 0.5) * spacing_m) ** 2 + (pts[:, 1] - y0 - (cj + 0.5) * spacing_m) ** 2
+    order = np.lexsort((d2, cell))
+    cells, first = np.unique(cell[order], return_index=True)
+    position = np.zeros((nx * ny, 3))
+    position[cells] = pts[order[first]] + np.array([0.0, 0.0, height_m])
+    present = np.zeros(nx * ny, bool)
+    present[cells] = True
+    return StreetLamps(float(x0), float(y0), float(spacing_m), nx, ny, position, present)
+
+
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
     c = np.clip(linear, 0.0, 1.0)
     return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055)
@@ -101,6 +144,12 @@ class _FrameRenderer:
         self.normals = mi.Float(np.ascontiguousarray(caster.face_normals, np.float32).ravel())
         self.albedo = mi.Float(np.ascontiguousarray(face_albedo(caster.meshes), np.float32).ravel())
         dr.make_opaque(self.normals, self.albedo)
+        self.lamps = street_lamps(caster.meshes, wx.street_lamp_spacing_m, wx.street_lamp_height_m) \
+            if wx.has_street_lamps else None
+        if self.lamps is not None:
+            self.lamp_position = mi.Float(np.ascontiguousarray(self.lamps.position_m, np.float32).ravel())
+            self.lamp_present = mi.Float(self.lamps.present.astype(np.float32))
+            dr.make_opaque(self.lamp_position, self.lamp_present)
 
     def render(self, position_m: np.ndarray, rot: np.ndarray):
         """-> display-space rgb [P, 3] float32 in 0..1, z-depth [P] (inf: none), face [P] (-1: none)."""
@@ -116,14 +165,34 @@ class _FrameRenderer:
         n = dr.gather(mi.Vector3f, self.normals, face, valid)
         n = dr.select(dr.dot(n, d) > 0, -n, n)  # the side the ray sees
         irr = vec(wx.ambient_rgb)
+        p = o + dr.select(valid, t, 0.0) * d
+        eps = 1e-3 + 1e-5 * dr.maximum(dr.maximum(dr.abs(p.x), dr.abs(p.y)), dr.abs(p.z))
         if wx.has_sun:
             s = mi.Vector3f(*[float(x) for x in wx.sun_direction_enu()])
             ndots = dr.dot(n, s)
             lit = valid & (ndots > 0)
-            p = o + t * d
-            eps = 1e-3 + 1e-5 * dr.maximum(dr.maximum(dr.abs(p.x), dr.abs(p.y)), dr.abs(p.z))
             shadow = self.caster.scene.ray_test(mi.Ray3f(p + n * eps, s), active=lit)
             irr += vec(wx.sun_irradiance_rgb) * dr.select(lit & ~shadow, ndots, 0.0)
+        if self.lamps is not None:  # the lamps of the 2 x 2 lattice cells around the point
+            lp = self.lamps
+            i0 = mi.Int32(dr.floor((p.x - lp.x0_m) / lp.spacing_m - 0.5))
+            j0 = mi.Int32(dr.floor((p.y - lp.y0_m) / lp.spacing_m - 0.5))
+            for di, dj in ((0, 0), (1, 0), (0, 1), (1, 1)):
+                ci, cj = i0 + di, j0 + dj
+                inside = valid & (ci >= 0) & (ci < lp.nx) & (cj >= 0) & (cj < lp.ny)
+                k = mi.UInt32(dr.select(inside, cj * lp.nx + ci, 0))
+                lamp = dr.gather(mi.Point3f, self.lamp_position, k, inside)
+                present = inside & (dr.gather(mi.Float, self.lamp_present, k, inside) > 0.5)
+                v = lamp - p
+                r2 = dr.squared_norm(v)
+                r = dr.sqrt(r2)
+                l_dir = v / dr.maximum(r, 1e-6)
+                cos_l = dr.dot(n, l_dir)
+                lit = present & (cos_l > 0)
+                ray = mi.Ray3f(p + n * eps, l_dir)
+                ray.maxt = dr.maximum(r - 2 * eps, 0.0)
+                shadow = self.caster.scene.ray_test(ray, active=lit)
+                irr += vec(wx.street_lamp_intensity_rgb) * dr.select(lit & ~shadow, cos_l / dr.maximum(r2, 1.0), 0.0)
         if wx.has_lamp:
             c_in = float(np.cos(np.deg2rad(wx.lamp_cone_half_angle_deg)))
             c_out = float(np.cos(np.deg2rad(wx.lamp_cone_half_angle_deg + wx.lamp_cone_falloff_deg)))

@@ -11,14 +11,16 @@ Per pixel that hits a surface (Lambert shading, flat face normals):
 
     L = albedo * (ambient_rgb
                   + sun_irradiance_rgb * max(0, n . s) * unshadowed          (sun, with ray-cast shadows)
-                  + lamp_intensity_rgb * cone(theta) * max(0, -n . d) / r**2)  (lamp at the camera)
+                  + lamp_intensity_rgb * cone(theta) * max(0, -n . d) / r**2   (lamp at the camera)
+                  + sum_k street_lamp_intensity_rgb * max(0, n . l_k) / max(r_k, 1 m)**2 * unshadowed_k)
     L = L * exp(-r / visibility_m) + haze_rgb * (1 - exp(-r / visibility_m))   (distance haze)
 
 with ``s`` the unit vector towards the sun (``sun_azimuth_deg`` clockwise from north,
 ``sun_elevation_deg`` above the horizon), ``d`` the unit ray direction, ``r`` the distance from
 the camera along the ray (m), ``theta`` the angle between the ray and the optical axis, and
 ``cone`` 1 inside ``lamp_cone_half_angle_deg``, falling linearly (in cos theta) to 0 over
-``lamp_cone_falloff_deg`` more. Pixels that hit nothing show the sky: a vertical gradient from
+``lamp_cone_falloff_deg`` more; ``l_k`` the unit vector and ``r_k`` the distance to street lamp
+``k`` of the four lattice cells around the surface point (cells without road have no lamp). Pixels that hit nothing show the sky: a vertical gradient from
 ``sky_horizon_rgb`` (horizontal rays and below) to ``sky_zenith_rgb`` (straight up).
 
 After tone mapping: rain streaks (``rain_streaks_per_mpx`` per megapixel, each ``rain_streak_length
@@ -64,6 +66,12 @@ class WeatherModel:
     lamp_intensity_rgb: RGB         # relative linear intensity (irradiance at 1 m on axis)
     lamp_cone_half_angle_deg: float
     lamp_cone_falloff_deg: float
+    # Street lamps (point lights over the roads; see ``sensing.camera.street_lamps``): one lamp per
+    # square lattice cell of side street_lamp_spacing_m that holds road, above the road point nearest
+    # the cell centre; a pixel is lit by the four lamps of the cells around it, with ray-cast shadows.
+    street_lamp_spacing_m: float    # 0 switches street lamps off
+    street_lamp_height_m: float     # above the road surface
+    street_lamp_intensity_rgb: RGB  # relative linear intensity (irradiance at 1 m, isotropic)
     # Camera exposure and sensor noise.
     exposure: float                 # linear scale before clipping and sRGB encoding
     pixel_noise_std_dn: float       # Gaussian noise, 8-bit digital numbers
@@ -90,6 +98,10 @@ class WeatherModel:
     def has_lamp(self) -> bool:
         return max(self.lamp_intensity_rgb) > 0
 
+    @property
+    def has_street_lamps(self) -> bool:
+        return self.street_lamp_spacing_m > 0 and max(self.street_lamp_intensity_rgb) > 0
+
     def attrs(self) -> dict:
         """Flat ``weather_<parameter>`` attrs (JSON types) for a store group."""
         out = {}
@@ -107,6 +119,7 @@ SUNNY = WeatherModel(
     sky_zenith_rgb=(0.20, 0.40, 0.90), sky_horizon_rgb=(0.60, 0.75, 0.95),
     haze_rgb=(0.60, 0.70, 0.85), visibility_m=20000.0,
     lamp_intensity_rgb=(0.0, 0.0, 0.0), lamp_cone_half_angle_deg=30.0, lamp_cone_falloff_deg=15.0,
+    street_lamp_spacing_m=0.0, street_lamp_height_m=6.0, street_lamp_intensity_rgb=(0.0, 0.0, 0.0),
     exposure=1.0, pixel_noise_std_dn=1.0,
     rain_streaks_per_mpx=0.0, rain_streak_length_frac=0.08, rain_streak_slant_deg=12.0,
     rain_streak_alpha=0.0, rain_streak_rgb=(0.8, 0.8, 0.85),
@@ -122,6 +135,7 @@ RAINY = WeatherModel(
     sky_zenith_rgb=(0.30, 0.31, 0.33), sky_horizon_rgb=(0.38, 0.39, 0.41),
     haze_rgb=(0.36, 0.37, 0.39), visibility_m=150.0,
     lamp_intensity_rgb=(0.0, 0.0, 0.0), lamp_cone_half_angle_deg=30.0, lamp_cone_falloff_deg=15.0,
+    street_lamp_spacing_m=0.0, street_lamp_height_m=6.0, street_lamp_intensity_rgb=(0.0, 0.0, 0.0),
     exposure=1.0, pixel_noise_std_dn=2.5,
     rain_streaks_per_mpx=400.0, rain_streak_length_frac=0.08, rain_streak_slant_deg=12.0,
     rain_streak_alpha=0.35, rain_streak_rgb=(0.75, 0.76, 0.80),
@@ -130,13 +144,14 @@ RAINY = WeatherModel(
 
 NIGHT = WeatherModel(
     name="night",
-    description="night: no sun, faint ambient, a lamp cone from the camera (headlight), "
-                "strong pixel noise",
+    description="night: no sun, faint ambient, warm street lamps every 30 m over the roads (with "
+                "shadows), a lamp cone from the camera (headlight), strong pixel noise",
     sun_azimuth_deg=135.0, sun_elevation_deg=-30.0,
     sun_irradiance_rgb=(0.0, 0.0, 0.0), ambient_rgb=(0.012, 0.014, 0.022),
     sky_zenith_rgb=(0.002, 0.003, 0.008), sky_horizon_rgb=(0.010, 0.010, 0.016),
     haze_rgb=(0.010, 0.010, 0.014), visibility_m=3000.0,
     lamp_intensity_rgb=(60.0, 55.0, 45.0), lamp_cone_half_angle_deg=25.0, lamp_cone_falloff_deg=15.0,
+    street_lamp_spacing_m=30.0, street_lamp_height_m=6.0, street_lamp_intensity_rgb=(14.0, 10.0, 5.0),
     exposure=1.0, pixel_noise_std_dn=6.0,
     rain_streaks_per_mpx=0.0, rain_streak_length_frac=0.08, rain_streak_slant_deg=12.0,
     rain_streak_alpha=0.0, rain_streak_rgb=(0.8, 0.8, 0.85),
