@@ -344,33 +344,107 @@ class BaseStation(_Model):
 
 
 class WaypointTrajectory(_Model):
-    """Waypoints in the ENU world frame (m) flown at constant speed, turning at each waypoint."""
+    """Waypoints in the ENU world frame (m), joined under the platform's dynamic limits
+    (``docs/mobility.md``): from rest to rest, cruising at ``speed_mps``, cutting each corner by at
+    most ``waypoint_tolerance_m`` and slowing down in turns; ground vehicles follow the roads."""
 
     kind: Literal["waypoints"] = "waypoints"
     waypoints_m: tuple[Vec3, ...]
-    speed_mps: float = Field(gt=0, le=100)
-    start_offset_s: float = Field(0.0, ge=0)
+    speed_mps: float = Field(gt=0, le=100, description="cruise speed, at most limits.max_speed_mps")
+    start_offset_s: float = Field(0.0, ge=0, description="the platform waits at its first waypoint until then")
+    waypoint_tolerance_m: float = Field(
+        1.0, ge=0, description="largest distance the path may keep from an interior waypoint when it "
+        "cuts the corner there; 0: stop at every waypoint")
+    follow_roads: bool | None = Field(
+        None, description="route between consecutive waypoints along the scene's road centre lines; "
+        "default: true for ground vehicles when the scene has roads, false otherwise (not for UAVs)")
+    max_road_snap_distance_m: float = Field(
+        10.0, gt=0, description="road following: a waypoint farther than this from every road is an error")
+    min_road_width_m: float | None = Field(
+        None, ge=0, description="road following: narrower roads are not used; default 3 m for ground "
+        "vehicles (no footways, cycleways or paths), 0 for pedestrians")
 
     @field_validator("waypoints_m")
     @classmethod
     def _two(cls, v):
         if len(v) < 2:
             raise ValueError("at least two waypoints are needed")
+        for k in range(len(v) - 1):
+            if v[k] == v[k + 1]:
+                raise ValueError(f"waypoints {k} and {k + 1} coincide")
         return v
+
+
+# Recording formats by file name: a CSV, a ROS1 bag, a rosbag2 storage file, or (no suffix) a rosbag2
+# directory with its metadata.yaml (docs/sensor-plugin.md).
+RECORDING_FORMATS = {".csv": "csv", ".bag": "ros1", ".db3": "rosbag2", ".mcap": "rosbag2", "": "rosbag2"}
+BAG_TIME_ORIGINS = ("first_message", "bag_start")
+
+
+def recording_format(path: str) -> str:
+    """``csv``, ``ros1`` or ``rosbag2`` from a recording's file name; ValueError for anything else."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in RECORDING_FORMATS:
+        raise ValueError(f"{path!r}: unknown recording format {suffix!r}; expected .csv, .bag (ROS1), "
+                         ".db3 or .mcap (rosbag2 storage file) or a rosbag2 directory (no suffix)")
+    return RECORDING_FORMATS[suffix]
+
+
+def _bag_time_origin(v):
+    if v is None or (isinstance(v, int) and not isinstance(v, bool)) or v in BAG_TIME_ORIGINS:
+        return v
+    raise ValueError(f"expected {' or '.join(BAG_TIME_ORIGINS)} or an integer stamp in ns, got {v!r}")
+
+
+class RecordingFrame(_Model):
+    """Pose of a recording's own frame (``odom``, ``map``, ...) in the scene's world frame."""
+
+    translation_m: Vec3 = (0.0, 0.0, 0.0)
+    rpy_deg: Vec3 = Field((0.0, 0.0, 0.0), description="roll about x, pitch about y, yaw about z (deg)")
 
 
 class ReplayTrajectory(_Model):
     """A recorded trajectory replayed onto the shared clock (offline replay).
 
-    ``path`` (relative to the scene directory) is a CSV with a header: ``time_ns`` (or ``time_s``),
-    ``x_m``, ``y_m``, ``z_m`` in the world frame, optionally ``qx, qy, qz, qw`` (base_link into
-    world) and ``vx_mps, vy_mps, vz_mps``. See ``simart_pipeline.mobility.replay``.
+    ``path`` (relative to the scene directory; its suffix says the format) is a CSV with a header:
+    ``time_ns`` (or ``time_s``), ``x_m``, ``y_m``, ``z_m`` in the world frame, optionally
+    ``qx, qy, qz, qw`` (base_link into world) and ``vx_mps, vy_mps, vz_mps``; or a ROS1 bag
+    (``.bag``), a rosbag2 storage file (``.db3``, ``.mcap``) or a rosbag2 directory, read by
+    ``topic``: ``geometry_msgs/PoseStamped``, ``PoseWithCovarianceStamped``, ``nav_msgs/Odometry``
+    or ``tf2_msgs/TFMessage`` (the pose of ``child_frame_id`` in ``parent_frame_id``, chained).
+    Bag times are ``stamp`` (message header or bag record time) minus ``time_origin`` (the first
+    message read, the bag's first record time, or an absolute stamp in ns). See
+    ``simart_pipeline.mobility.replay`` and ``.bags``, ``docs/sensor-plugin.md``.
     """
 
     kind: Literal["replay"]
     path: str
     time_offset_s: float = Field(0.0, description="added to the recorded times")
+    topic: str | None = Field(None, description="bags only (required there): the topic to read")
+    child_frame_id: str | None = Field(None, description="/tf only: the platform's frame (base_link)")
+    parent_frame_id: str | None = Field(None, description="/tf only: the frame the poses are in")
+    stamp: Literal["header", "record"] | None = Field(
+        None, description="bags only: header stamps (default) or bag record times")
+    time_origin: str | int | None = Field(
+        None, description="bags only: first_message (default), bag_start, or an absolute stamp (ns)")
+    recording_frame: RecordingFrame = Field(
+        default_factory=lambda: RecordingFrame(),
+        description="pose of the frame the recorded poses are given in, in the scene's world frame")
     _inside = field_validator("path")(classmethod(lambda cls, v: _inside_scene_dir(v, "the recording")))
+    _origin = field_validator("time_origin")(classmethod(lambda cls, v: _bag_time_origin(v)))
+
+    @model_validator(mode="after")
+    def _format(self):
+        fmt = recording_format(self.path)
+        bag_only = [k for k in ("topic", "child_frame_id", "parent_frame_id", "stamp", "time_origin")
+                    if getattr(self, k) is not None]
+        if fmt == "csv" and bag_only:
+            raise ValueError(f"{', '.join(bag_only)}: only for bags; a CSV carries its own times and poses")
+        if fmt != "csv" and not self.topic:
+            raise ValueError("topic: a bag needs the topic of the poses (PoseStamped, Odometry or /tf)")
+        if (self.child_frame_id is None) != (self.parent_frame_id is None):
+            raise ValueError("child_frame_id and parent_frame_id go together (a /tf lookup)")
+        return self
 
 
 def _trajectory_kind(v) -> str:
@@ -382,12 +456,160 @@ TrajectorySource = Annotated[
     Discriminator(_trajectory_kind)]
 
 
+class DynamicLimits(_Model):
+    """Bounds a waypoint trajectory never exceeds (``docs/mobility.md``); defaults per platform kind
+    in :data:`DEFAULT_LIMITS`, which a platform's ``limits`` overrides key by key.
+
+    Accelerations exclude gravity. Tangential (along the path) and lateral (across it) are each
+    capped by ``max_acceleration_mps2`` as well. The yaw limits shape turns in place (at stops);
+    while moving, the heading follows the velocity. Heights are above the ground plane z = 0.
+    """
+
+    max_speed_mps: float = Field(gt=0, le=100)
+    max_acceleration_mps2: float = Field(gt=0, le=100)
+    max_tangential_acceleration_mps2: float = Field(gt=0, le=100)
+    max_lateral_acceleration_mps2: float = Field(gt=0, le=100)
+    max_jerk_mps3: float = Field(gt=0, le=1000)
+    max_yaw_rate_radps: float = Field(gt=0, le=50)
+    max_yaw_acceleration_radps2: float = Field(gt=0, le=500)
+    min_height_above_ground_m: float | None = Field(None, description="UAV altitude band: lower bound")
+    max_height_above_ground_m: float | None = Field(None, description="UAV altitude band: upper bound")
+
+
+# Defaults per platform kind; where the numbers come from: docs/mobility.md, "Limits".
+DEFAULT_LIMITS: dict[str, dict[str, float | None]] = {
+    # PX4 multicopter auto mode: MPC_ACC_HOR 3 m s-2, MPC_ACC_HOR_MAX 5 m s-2, MPC_JERK_AUTO 4 m s-3,
+    # MPC_YAWRAUTO_MAX 45 deg/s; top speed of small multirotors ~20 m s-1; EU 2019/947 open
+    # category: at most 120 m above the ground.
+    "uav": {"max_speed_mps": 20.0, "max_acceleration_mps2": 5.0, "max_tangential_acceleration_mps2": 3.0,
+            "max_lateral_acceleration_mps2": 5.0, "max_jerk_mps3": 4.0, "max_yaw_rate_radps": 0.785,
+            "max_yaw_acceleration_radps2": 1.57, "min_height_above_ground_m": 2.0,
+            "max_height_above_ground_m": 120.0},
+    # Urban car: 50 km/h; ISO 15622 (ACC) 2 m s-2 and 2.5 m s-3; ISO 11270 (lane keeping) 3 m s-2 lateral.
+    "ground_vehicle": {"max_speed_mps": 13.9, "max_acceleration_mps2": 3.0,
+                       "max_tangential_acceleration_mps2": 2.0, "max_lateral_acceleration_mps2": 3.0,
+                       "max_jerk_mps3": 2.5, "max_yaw_rate_radps": 0.5, "max_yaw_acceleration_radps2": 0.5},
+    # Walking: free speed ~1.34 m s-1 (Weidmann 1993), brisk walk up to 2.5 m s-1; gait starts and
+    # turns of about 1 m s-2.
+    "pedestrian": {"max_speed_mps": 2.5, "max_acceleration_mps2": 1.5, "max_tangential_acceleration_mps2": 1.0,
+                   "max_lateral_acceleration_mps2": 1.0, "max_jerk_mps3": 2.0, "max_yaw_rate_radps": 1.5,
+                   "max_yaw_acceleration_radps2": 3.0},
+}
+GRAVITY_MPS2 = 9.80665  # a multirotor cannot accelerate downward faster without turning over
+
+
 class Platform(_Model):
     name: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$")
     kind: Literal["uav", "ground_vehicle", "pedestrian"]
     array: Array = Array()
     trajectory: TrajectorySource
+    limits: DynamicLimits | None = Field(None, description="overrides of the kind's DEFAULT_LIMITS; "
+                                         "always filled in after validation")
     sensors: tuple[Sensor, ...] = ()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _kind_defaults(cls, data):
+        # The kind's defaults under whatever the config gives, key by key.
+        if isinstance(data, dict) and data.get("kind") in DEFAULT_LIMITS:
+            given = data.get("limits")
+            if given is None or isinstance(given, dict):
+                data = {**data, "limits": {**DEFAULT_LIMITS[data["kind"]], **(given or {})}}
+        return data
+
+    @model_validator(mode="after")
+    def _within_limits(self):
+        lim, tr = self.limits, self.trajectory
+        if lim is None:  # only for a kind without defaults, which the schema refuses already
+            return self
+        band = (lim.min_height_above_ground_m, lim.max_height_above_ground_m)
+        if self.kind != "uav":
+            if band != (None, None):
+                raise ValueError(f"platform {self.name}: limits: an altitude band applies to UAVs only")
+        else:
+            if lim.max_acceleration_mps2 >= GRAVITY_MPS2:
+                raise ValueError(f"platform {self.name}: limits.max_acceleration_mps2 must stay below "
+                                 f"g = {GRAVITY_MPS2} m/s2 for a multirotor")
+            if None not in band and band[0] >= band[1]:
+                raise ValueError(f"platform {self.name}: limits: min_height_above_ground_m must be below "
+                                 "max_height_above_ground_m")
+        if tr.kind != "waypoints":
+            return self
+        if tr.speed_mps > lim.max_speed_mps:
+            raise ValueError(f"platform {self.name}: trajectory.speed_mps {tr.speed_mps} exceeds "
+                             f"limits.max_speed_mps {lim.max_speed_mps} of a {self.kind}")
+        if self.kind == "uav" and tr.follow_roads:
+            raise ValueError(f"platform {self.name}: trajectory.follow_roads is for ground vehicles and pedestrians")
+        lo = -math.inf if band[0] is None else band[0]
+        hi = math.inf if band[1] is None else band[1]
+        for k, w in enumerate(tr.waypoints_m):
+            if not lo <= w[2] <= hi:
+                raise ValueError(f"platform {self.name}: trajectory.waypoints_m.{k} {list(w)} is {w[2]} m "
+                                 f"above the ground, outside its altitude band [{band[0]}, {band[1]}] m "
+                                 "(limits.min/max_height_above_ground_m)")
+        return self
+
+
+class ImportedStream(_Model):
+    """One recorded sensor stream of a bag, imported as the ``sensor_frames`` group
+    ``/<device>/<sensor>`` in place of the embedded renderer (``docs/sensor-plugin.md``).
+
+    It replaces the configured sensor of the same name on ``device`` (which must then be of the same
+    kind) or adds one. Kinds and message types: ``camera`` (``sensor_msgs/Image`` in an 8-bit colour
+    or mono encoding, or ``CompressedImage`` JPEG/PNG), ``lidar`` (``PointCloud2``), ``imu``
+    (``Imu``), ``gps`` (``NavSatFix``). Extrinsics: ``config`` takes ``mount`` (default: the mount of
+    the embedded sensor of the same name, else identity); ``tf`` looks up the pose of the messages'
+    frame in ``base_frame_id`` on the bag's ``/tf_static`` and ``/tf`` at the first message.
+    """
+
+    device: str
+    sensor: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$")
+    kind: Literal["camera", "lidar", "imu", "gps"]
+    topic: str = Field(min_length=1)
+    camera_info_topic: str | None = Field(None, description="camera only: sensor_msgs/CameraInfo "
+                                          "topic giving the intrinsics")
+    image_frame: Literal["optical", "body"] = Field(
+        "optical", description="camera only: the axes of the images' frame_id: optical (z forward, "
+        "x right, y down; the ROS convention) or body (x forward, y left, z up)")
+    extrinsics: Literal["config", "tf"] = "config"
+    mount: Mount | None = Field(None, description="extrinsics: config only")
+    base_frame_id: str = Field("base_link", description="extrinsics: tf only; the bag's name of the "
+                               "device's base_link")
+    frame_id: str | None = Field(None, description="replaces the messages' header frame_id (for "
+                                 "recordings whose frame_id is empty or wrong)")
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        if self.kind != "camera" and (self.camera_info_topic is not None or self.image_frame != "optical"):
+            raise ValueError("camera_info_topic and image_frame are for cameras only")
+        if self.extrinsics == "tf" and self.mount is not None:
+            raise ValueError("mount: give it with extrinsics: config, not tf")
+        return self
+
+
+class SensorImport(_Model):
+    """Sensor streams recorded by another simulator (or a real robot) in one bag.
+
+    ``path`` (relative to the scene directory): a ROS1 bag, a rosbag2 storage file (``.db3``,
+    ``.mcap``) or a rosbag2 directory. Times: ``stamp`` (message header, or bag record time) minus
+    ``time_origin`` (the earliest stamp of the imported streams, the bag's first record time, or an
+    absolute stamp in ns), plus ``time_offset_s``; messages outside the session's clock are dropped.
+    """
+
+    path: str
+    stamp: Literal["header", "record"] = "header"
+    time_origin: str | int = "first_message"
+    time_offset_s: float = 0.0
+    streams: tuple[ImportedStream, ...] = Field(min_length=1)
+    _inside = field_validator("path")(classmethod(lambda cls, v: _inside_scene_dir(v, "the bag")))
+    _origin = field_validator("time_origin")(classmethod(lambda cls, v: _bag_time_origin(v)))
+
+    @field_validator("path")
+    @classmethod
+    def _a_bag(cls, v):
+        if recording_format(v) == "csv":
+            raise ValueError(f"{v!r}: sensor streams are imported from bags, not CSV files")
+        return v
 
 
 class Clock(_Model):
@@ -574,6 +796,27 @@ class SceneConfig(_Model):
     ckm: Ckm = Ckm()
     weathers: tuple[Literal["sunny", "rainy", "night"], ...] = WEATHERS
     seed: int = Field(0, description="seed of every random draw (sensor noise, layouts)")
+    sensor_imports: tuple[SensorImport, ...] = Field(
+        (), description="recorded sensor streams imported from bags in place of the embedded renderer")
+
+    @model_validator(mode="after")
+    def _imports_match_devices(self):
+        devices = {d.name: d for d in (*self.base_stations, *self.platforms)}
+        seen = set()
+        for i, imp in enumerate(self.sensor_imports):
+            for j, st in enumerate(imp.streams):
+                where = f"sensor_imports.{i}.streams.{j}"
+                if st.device not in devices:
+                    raise ValueError(f"{where}.device: no platform or base station named {st.device!r}; "
+                                     f"known: {', '.join(devices)}")
+                if (st.device, st.sensor) in seen:
+                    raise ValueError(f"{where}: {st.device}/{st.sensor} is imported twice")
+                seen.add((st.device, st.sensor))
+                same = [s for s in devices[st.device].sensors if s.name == st.sensor]
+                if same and same[0].kind != st.kind:
+                    raise ValueError(f"{where}.kind: {st.kind!r} cannot replace {st.device}/{st.sensor}, "
+                                     f"a {same[0].kind}")
+        return self
 
     @model_validator(mode="after")
     def _unique_names(self):
@@ -640,8 +883,15 @@ def load_scene_config(scene_dir: str | Path) -> SceneConfig:
             if not rec.is_relative_to(scene_dir.resolve()):
                 problems.append(f"{path}: platforms.{i}.trajectory.path: {p.trajectory.path!r} points "
                                 "outside the scene directory")
-            elif not rec.is_file():
-                problems.append(f"{path}: platforms.{i}.trajectory.path: file not found: {rec}")
+            elif not (rec.is_file() or (rec / "metadata.yaml").is_file()):
+                problems.append(f"{path}: platforms.{i}.trajectory.path: file not found: {rec}"
+                                + (" (a rosbag2 directory needs its metadata.yaml)" if rec.is_dir() else ""))
+    for i, imp in enumerate(cfg.sensor_imports):
+        bag = (scene_dir / imp.path).resolve()
+        if not bag.is_relative_to(scene_dir.resolve()):
+            problems.append(f"{path}: sensor_imports.{i}.path: {imp.path!r} points outside the scene directory")
+        elif not (bag.is_file() or (bag / "metadata.yaml").is_file()):
+            problems.append(f"{path}: sensor_imports.{i}.path: bag not found: {bag}")
     if cfg.source.kind in ("osm", "mesh"):
         src = resolve_source_path(scene_dir, cfg)
         if not src.is_file():

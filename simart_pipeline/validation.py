@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from simart_pipeline.config import ConfigError, SceneConfig, load_scene_config
+from simart_pipeline.mobility.trajectory import plan_platform
 from simart_pipeline.scene import geometry
 
 
@@ -39,6 +40,11 @@ def scene_problems(scene_dir: str | Path) -> tuple[SceneConfig | None, list[str]
         for k, w in enumerate(getattr(p.trajectory, "waypoints_m", ())):
             if inside(w):
                 problems.append(f"{where}: platforms.{i}.trajectory.waypoints_m.{k}: {list(w)} is inside a building")
+        if p.trajectory.kind == "waypoints":
+            try:  # the route along roads and the motion under the limits, as the trajectory asset plans them
+                plan_platform(p, geom)
+            except ValueError as exc:
+                problems.append(f"{where}: platforms.{i}.trajectory: {exc}")
     ground = geom.of_class("ground")
     if ground:
         import shapely

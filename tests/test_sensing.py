@@ -26,12 +26,12 @@ ORIGIN = {"latitude_deg": 48.1372, "longitude_deg": 11.5755, "altitude_m": 519.0
 
 def make_config(bs_sensors=(), plat_sensors=(), *, bs_position=(0.0, 0.0, 0.0), bs_orientation=(0.0, 0.0, 0.0),
                 waypoints=((0.0, 0.0, 5.0), (10.0, 0.0, 5.0)), speed=2.0, start_offset=0.0, duration=1.0,
-                seed=0) -> SceneConfig:
+                seed=0, kind="uav") -> SceneConfig:
     return SceneConfig.model_validate({
         "name": "t", "source": {"kind": "procedural"}, "origin": ORIGIN,
         "base_stations": [{"name": "bs0", "position_m": list(bs_position),
                            "orientation_deg": list(bs_orientation), "sensors": list(bs_sensors)}],
-        "platforms": [{"name": "p0", "kind": "uav", "sensors": list(plat_sensors),
+        "platforms": [{"name": "p0", "kind": kind, "sensors": list(plat_sensors),
                        "trajectory": {"waypoints_m": [list(w) for w in waypoints], "speed_mps": speed,
                                       "start_offset_s": start_offset}}],
         "clock": {"duration_s": duration}, "seed": seed,
@@ -99,7 +99,7 @@ def test_camera_on_platform_follows_the_pose_chain():
     # Platform at 5 m flying east, camera mounted 1 m forward, pitched down 45 deg: the optical axis
     # meets the ground 5 m ahead of the camera, at a z-depth of 5 * sqrt(2) m.
     cam = dict(CAM, width_px=65, mount={"translation_m": [1.0, 0.0, 0.0], "rpy_deg": [0.0, 45.0, 0.0]})
-    cfg = make_config(plat_sensors=[cam])
+    cfg = make_config(plat_sensors=[cam], kind="pedestrian")  # level (a UAV tilts as it accelerates)
     tree = render_sensor_frames(scene_of(GROUND), build_trajectory(cfg), cfg, "sunny")
     ds = tree["p0/cam"].to_dataset()
     k = ds["camera_matrix"].values
@@ -133,7 +133,7 @@ def test_lidar_ranges_over_flat_ground():
     lidar = {"kind": "lidar", "name": "lidar", "rate_hz": 5.0, "channels": 5, "vertical_fov_deg": [-30.0, -10.0],
              "horizontal_samples": 64, "max_range_m": 120.0, "range_noise_std_m": 0.0,
              "mount": {"translation_m": [0.0, 0.0, -0.2]}}
-    cfg = make_config(plat_sensors=[lidar])
+    cfg = make_config(plat_sensors=[lidar], kind="pedestrian")  # level
     tree = render_sensor_frames(scene_of(GROUND), build_trajectory(cfg), cfg, "sunny")
     ds = tree["p0/lidar"].to_dataset()
     el, _ = beam_angles(cfg.platforms[0].sensors[0])
@@ -149,7 +149,7 @@ def test_lidar_ranges_over_flat_ground():
 def test_lidar_rain_drops_returns_and_adds_noise():
     lidar = {"kind": "lidar", "name": "lidar", "rate_hz": 5.0, "channels": 8, "vertical_fov_deg": [-30.0, -10.0],
              "horizontal_samples": 512, "range_noise_std_m": 0.02}
-    cfg = make_config(plat_sensors=[lidar])
+    cfg = make_config(plat_sensors=[lidar], kind="pedestrian")  # level
     meshes, traj = scene_of(GROUND), build_trajectory(cfg)
     out = {w: render_sensor_frames(meshes, traj, cfg, w)["p0/lidar"].to_dataset() for w in ("sunny", "rainy")}
     el, _ = beam_angles(cfg.platforms[0].sensors[0])

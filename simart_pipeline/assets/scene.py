@@ -44,15 +44,21 @@ def paired_meshes(context: dg.AssetExecutionContext, project: ProjectResource,
         "build_s": round(time.perf_counter() - t0, 3)})
 
 
-@dg.asset(partitions_def=scene_partitions, code_version="1", group_name="scene")
+@dg.asset(partitions_def=scene_partitions, code_version="2", group_name="scene")
 def trajectory(context: dg.AssetExecutionContext, project: ProjectResource,
                osm_extract: xr.Dataset) -> dg.Output[xr.Dataset]:
-    """Platform poses, velocities and accelerations on the shared clock, checked clear of buildings."""
+    """Platform poses, velocities and accelerations on the shared clock under each platform's dynamic
+    limits (ground vehicles along the roads of ``osm_extract``), checked clear of buildings."""
+    import json
+
     scene = context.partition_key
     cfg = project.config(scene)
     geom = geometry.from_dataset(osm_extract.load())
-    ds = build_trajectory(cfg, project.scene_dir(scene))
+    ds = build_trajectory(cfg, project.scene_dir(scene), geom=geom)
     check_clear_of_buildings(ds, geom, where=f"scene {scene}")
     ds.attrs.update(provenance.attrs(cfg, "trajectory"))
+    motion = json.loads(ds.attrs["dynamics"])
     return dg.Output(ds, metadata={"num_platforms": ds.sizes["platform"], "num_samples": ds.sizes["time"],
+                                   "motion_end_s": dg.MetadataValue.json(
+                                       {k: v["motion_end_s"] for k, v in motion.items()}),
                                    "preview": dg.MetadataValue.md(previews.top_view(geom, cfg, ds, title=scene))})

@@ -9,19 +9,20 @@ from simart_pipeline import previews, provenance
 from simart_pipeline.partitions import from_scene, scene_weather, split_key
 from simart_pipeline.resources import ProjectResource
 from simart_pipeline.scene.meshes import SceneMeshes
-from simart_pipeline.sensing.streams import render_sensor_frames
+from simart_pipeline.sensing.bag_import import build_sensor_frames
 
 
-@dg.asset(partitions_def=scene_weather, code_version="1", group_name="sensing", pool="rendering",
+@dg.asset(partitions_def=scene_weather, code_version="2", group_name="sensing", pool="rendering",
           ins={"paired_meshes": dg.AssetIn(partition_mapping=from_scene),
                "trajectory": dg.AssetIn(partition_mapping=from_scene)})
 def sensor_frames(context: dg.AssetExecutionContext, project: ProjectResource,
                   paired_meshes: SceneMeshes, trajectory: xr.Dataset) -> dg.Output[xr.DataTree]:
-    """Every configured sensor's stream, one group per ``<device>/<sensor>``."""
+    """Every configured sensor's stream, one group per ``<device>/<sensor>``: rendered, or imported
+    from a bag (``sensor_imports``, docs/sensor-plugin.md)."""
     scene, weather = split_key(context.partition_key)
     cfg = project.config(scene)
     t0 = time.perf_counter()
-    tree = render_sensor_frames(paired_meshes, trajectory.load(), cfg, weather)
+    tree = build_sensor_frames(paired_meshes, trajectory.load(), cfg, weather, project.scene_dir(scene))
     tree.attrs.update(provenance.attrs(cfg, "sensor_frames", weather=weather))
     meta = {"streams": ", ".join(node.path for node in tree.subtree if node.has_data) or "none",
             "render_s": round(time.perf_counter() - t0, 2)}

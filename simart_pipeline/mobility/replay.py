@@ -1,4 +1,10 @@
-"""Offline replay: a recorded trajectory (CSV) resampled onto the shared clock.
+"""Offline replay: a recorded trajectory (CSV or ROS bag) resampled onto the shared clock.
+
+:func:`read_recording` reads what a platform's ``trajectory: {kind: replay}`` names, by file name:
+a CSV (:func:`read_csv`), or a ROS1 bag, rosbag2 storage file or directory
+(:func:`simart_pipeline.mobility.bags.read_bag_trajectory`), and moves it from the recording's
+frame into the scene's world frame (``recording_frame``; identity by default, which leaves every
+value untouched).
 
 CSV layout (header required, one row per recorded pose, times strictly increasing):
 
@@ -8,11 +14,14 @@ CSV layout (header required, one row per recorded pose, times strictly increasin
 - optional ``vx_mps, vy_mps, vz_mps``: velocity in world; without it, the derivative of a cubic
   spline through the positions.
 
+A bag's recording may also carry ``angular_velocity_radps`` (Odometry: base_link's, in base_link);
+without it the angular rate comes from consecutive orientations.
+
 Resampling: an instant that equals a recorded one takes the recorded values exactly (so a
 trajectory exported at the pose rate and replayed gives the very same poses, and the very same
-CIRs); between records, positions are cubic Hermite (with the velocities), velocities and
-accelerations linear, orientations slerp; before the first and after the last record the platform
-holds still at the end pose.
+CIRs); between records, positions are cubic Hermite (with the velocities), velocities,
+accelerations and recorded angular rates linear, orientations slerp; before the first and after
+the last record the platform holds still at the end pose.
 """
 
 from __future__ import annotations
@@ -24,6 +33,8 @@ import xarray as xr
 from scipy.interpolate import CubicHermiteSpline, CubicSpline
 from scipy.spatial.transform import Rotation, Slerp
 
+from simart_pipeline import frames
+
 POSITION = ("x_m", "y_m", "z_m")
 QUATERNION = ("qx", "qy", "qz", "qw")
 VELOCITY = ("vx_mps", "vy_mps", "vz_mps")
@@ -31,6 +42,42 @@ VELOCITY = ("vx_mps", "vy_mps", "vz_mps")
 
 class ReplayError(ValueError):
     """A recorded trajectory that cannot be replayed; the message names the file."""
+
+
+def read_recording(trajectory, scene_dir: str | Path) -> dict[str, np.ndarray]:
+    """The recording a ``config.ReplayTrajectory`` names (relative to ``scene_dir``), in world.
+
+    :returns: the layout of :func:`read_csv`; times are not yet offset (``resample`` does that).
+    """
+    from simart_pipeline.config import recording_format
+
+    path = Path(scene_dir) / trajectory.path
+    if recording_format(trajectory.path) == "csv":
+        rec = read_csv(path)
+    else:
+        from simart_pipeline.mobility import bags
+
+        rec = bags.read_bag_trajectory(path, trajectory.topic, stamp=trajectory.stamp or "header",
+                                       time_origin=trajectory.time_origin,
+                                       child_frame_id=trajectory.child_frame_id,
+                                       parent_frame_id=trajectory.parent_frame_id)
+    return to_world(rec, trajectory.recording_frame.translation_m, trajectory.recording_frame.rpy_deg)
+
+
+def to_world(rec: dict[str, np.ndarray], translation_m=(0.0, 0.0, 0.0), rpy_deg=(0.0, 0.0, 0.0)
+             ) -> dict[str, np.ndarray]:
+    """A recording moved from its own frame into world, that frame's pose in world being
+    ``translation_m`` and ``rpy_deg``; body-frame quantities (angular rate) stay as they are."""
+    if not any(translation_m) and not any(rpy_deg):
+        return rec  # identity: keep the recorded values bit for bit
+    r = frames.rotation_from_rpy_deg(rpy_deg)
+    out = dict(rec)
+    out["position_m"] = r.apply(rec["position_m"]) + np.asarray(translation_m, np.float64)
+    if "velocity_mps" in rec:
+        out["velocity_mps"] = r.apply(rec["velocity_mps"])
+    if "orientation_xyzw" in rec:
+        out["orientation_xyzw"] = (r * Rotation.from_quat(rec["orientation_xyzw"])).as_quat()
+    return out
 
 
 def read_csv(path: str | Path) -> dict[str, np.ndarray]:
@@ -114,11 +161,14 @@ def resample(rec: dict[str, np.ndarray], times_ns: np.ndarray, time_offset_s: fl
         rot_rec = Rotation.from_euler("z", np.arctan2(vel_rec[:, 1], vel_rec[:, 0])[:, None])
     rot = Slerp(t_rec, rot_rec)(q)
     quat = rot.as_quat()
-    # Body angular rate from consecutive records: rotvec of q_i^-1 q_{i+1} over the interval.
-    dt = np.diff(t_rec)
-    w_seg = (rot_rec[:-1].inv() * rot_rec[1:]).as_rotvec() / dt[:, None]
-    seg = np.clip(np.searchsorted(t_rec, q, side="right") - 1, 0, len(dt) - 1)
-    ang = w_seg[seg]
+    if "angular_velocity_radps" in rec:  # recorded (Odometry twist): linear between records
+        ang = np.stack([np.interp(q, t_rec, rec["angular_velocity_radps"][:, i]) for i in range(3)], axis=-1)
+    else:
+        # Body angular rate from consecutive records: rotvec of q_i^-1 q_{i+1} over the interval.
+        dt = np.diff(t_rec)
+        w_seg = (rot_rec[:-1].inv() * rot_rec[1:]).as_rotvec() / dt[:, None]
+        seg = np.clip(np.searchsorted(t_rec, q, side="right") - 1, 0, len(dt) - 1)
+        ang = w_seg[seg]
     # Exactly at a recorded instant: the recorded values, bit for bit.
     hit = np.searchsorted(t_rec_ns, q_ns)
     exact = (hit < len(t_rec_ns)) & (t_rec_ns[np.minimum(hit, len(t_rec_ns) - 1)] == q_ns)
@@ -127,6 +177,8 @@ def resample(rec: dict[str, np.ndarray], times_ns: np.ndarray, time_offset_s: fl
     vel[exact] = vel_rec[idx]
     if "orientation_xyzw" in rec:
         quat[exact] = rec["orientation_xyzw"][idx]
+    if "angular_velocity_radps" in rec:
+        ang[exact] = rec["angular_velocity_radps"][idx]
     vel[~moving] = 0.0
     acc[~moving] = 0.0
     ang[~moving] = 0.0

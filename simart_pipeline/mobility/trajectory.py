@@ -1,9 +1,13 @@
 """Platform trajectories on the shared clock.
 
-First version: a waypoint trajectory is a C2 cubic spline through the waypoints, with knots at the
-times a platform flying at ``speed_mps`` along the straight segments would reach them; before the
-first knot and after the last the platform holds still. Heading follows the horizontal velocity,
-roll and pitch stay zero (a level platform; the mobility issue adds attitude dynamics).
+A waypoint trajectory respects its platform's dynamic limits (``config.DynamicLimits``; the model
+and its defaults: ``docs/mobility.md``): the waypoints, or for ground vehicles the road route
+through them (:mod:`.roads`), become a path of straight segments and continuous-curvature corner
+blends within ``waypoint_tolerance_m`` of each waypoint (:mod:`.path`); the platform moves along it
+from rest to rest with a jerk-limited speed profile that slows down in turns (:mod:`.dynamics`).
+It waits at its first waypoint until ``start_offset_s`` and stays at its last one after arriving.
+A UAV's attitude is a quadrotor's (body z along the thrust ``a + g``), ground vehicles and
+pedestrians stay level; the heading follows the horizontal velocity (:mod:`.attitude`).
 
 Dataset layout (``trajectory`` asset):
 
@@ -15,72 +19,112 @@ Dataset layout (``trajectory`` asset):
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 import xarray as xr
-from scipy.interpolate import CubicHermiteSpline, CubicSpline
+from scipy.interpolate import CubicHermiteSpline
 from scipy.spatial.transform import Rotation, Slerp
 
 from simart_pipeline import clock, frames
 from simart_pipeline.config import Platform, SceneConfig
+from simart_pipeline.mobility import dynamics, path, roads
 
 AXES = ["x", "y", "z"]
 QUAT = ["x", "y", "z", "w"]
-_EPS_SPEED = 1e-6
+POSE_KEYS = ("position_m", "velocity_mps", "acceleration_mps2", "orientation_xyzw", "angular_velocity_radps")
+CAR_MIN_ROAD_WIDTH_M = 3.0  # narrower centre lines are footways, cycleways and paths (osm_tags widths)
 
 
-def waypoint_knots_s(platform: Platform) -> np.ndarray:
-    """Knot times (s): start offset plus cumulative straight-line distance over speed."""
-    wp = np.asarray(platform.trajectory.waypoints_m, dtype=np.float64)
+def follows_roads(platform: Platform, geom) -> bool:
+    """Whether the platform's waypoints are joined along roads: ``follow_roads``, or by default for
+    ground vehicles when ``geom`` (the source geometry) has road centre lines."""
+    tr = platform.trajectory
+    if tr.kind != "waypoints" or platform.kind == "uav" or tr.follow_roads is False:
+        return False
+    if tr.follow_roads is None:
+        return platform.kind == "ground_vehicle" and geom is not None and bool(roads.road_lines(geom)[0])
+    return True
+
+
+def _may_follow_roads(platform: Platform) -> bool:
+    tr = platform.trajectory
+    return tr.kind == "waypoints" and platform.kind != "uav" and (
+        tr.follow_roads or (tr.follow_roads is None and platform.kind == "ground_vehicle"))
+
+
+def waypoint_path(platform: Platform, geom=None) -> tuple[path.CornerPath, roads.Route | None]:
+    """The corner-blended path of a waypoint platform, and its road route when it follows roads."""
+    tr = platform.trajectory
+    where = f"platform {platform.name}"
+    wp = np.asarray(tr.waypoints_m, dtype=np.float64)
     seg = np.linalg.norm(np.diff(wp, axis=0), axis=1)
-    if np.any(seg <= 0):
-        raise ValueError(f"platform {platform.name}: two consecutive waypoints coincide")
-    return platform.trajectory.start_offset_s + np.concatenate([[0.0], np.cumsum(seg)]) \
-        / platform.trajectory.speed_mps
+    if np.any(seg <= 1e-9):
+        k = int(np.argmax(seg <= 1e-9))
+        raise ValueError(f"{where}: trajectory.waypoints_m.{k} and .{k + 1} coincide")
+    if not follows_roads(platform, geom):
+        return path.corner_path(wp, np.full(len(wp), tr.waypoint_tolerance_m)), None
+    if geom is None:
+        raise ValueError(f"{where}: following roads needs the scene's source geometry")
+    min_width = tr.min_road_width_m
+    if min_width is None:
+        min_width = CAR_MIN_ROAD_WIDTH_M if platform.kind == "ground_vehicle" else 0.0
+    route = roads.route_through(geom, wp, min_width_m=min_width, max_snap_m=tr.max_road_snap_distance_m,
+                                waypoint_tolerance_m=tr.waypoint_tolerance_m, where=where)
+    if len(route.points_m) < 2:
+        raise roads.RoadError(f"{where}: every waypoint snaps to the same point of the road")
+    return path.corner_path(route.points_m, route.tolerance_m), route
 
 
-def evaluate_waypoints(platform: Platform, t_s: np.ndarray) -> dict[str, np.ndarray]:
+def plan_platform(platform: Platform, geom=None) -> dynamics.MotionPlan:
+    """The motion of a waypoint platform under its limits (:func:`dynamics.plan_motion`)."""
+    tr = platform.trajectory
+    cp, _ = waypoint_path(platform, geom)
+    plan = dynamics.plan_motion(cp, platform.limits, tr.speed_mps,
+                                "thrust" if platform.kind == "uav" else "level", tr.start_offset_s)
+    lo, hi = platform.limits.min_height_above_ground_m, platform.limits.max_height_above_ground_m
+    z = plan.segment_samples()["position_m"][:, 2]
+    if (lo is not None and z.min() < lo - 1e-9) or (hi is not None and z.max() > hi + 1e-9):
+        raise ValueError(f"platform {platform.name}: the path leaves the altitude band [{lo}, {hi}] m "
+                         f"(z from {z.min():.2f} to {z.max():.2f} m)")
+    return plan
+
+
+def evaluate_waypoints(platform: Platform, t_s: np.ndarray, geom=None) -> dict[str, np.ndarray]:
     """Position, velocity, acceleration, orientation and body angular rate at times ``t_s`` [n] s."""
-    wp = np.asarray(platform.trajectory.waypoints_m, dtype=np.float64)
-    knots = waypoint_knots_s(platform)
-    spline = CubicSpline(knots, wp, axis=0, bc_type="natural")
-    t = np.asarray(t_s, dtype=np.float64)
-    moving = (t >= knots[0]) & (t <= knots[-1])
-    tc = np.clip(t, knots[0], knots[-1])
-    pos = spline(tc)
-    vel = np.where(moving[:, None], spline(tc, 1), 0.0)
-    acc = np.where(moving[:, None], spline(tc, 2), 0.0)
-    # Heading from the horizontal velocity; where the platform stands still it keeps the heading
-    # it had (at the start: the heading it is about to take).
-    v_edge = spline(tc, 1)
-    yaw = np.arctan2(v_edge[:, 1], v_edge[:, 0])
-    vh2 = vel[:, 0] ** 2 + vel[:, 1] ** 2
-    yaw_rate = np.where(vh2 > _EPS_SPEED,
-                        (vel[:, 0] * acc[:, 1] - vel[:, 1] * acc[:, 0]) / np.maximum(vh2, _EPS_SPEED), 0.0)
-    quat = Rotation.from_euler("z", yaw[:, None]).as_quat()  # scalar-last x, y, z, w
-    ang = np.zeros_like(pos)
-    ang[:, 2] = yaw_rate  # level platform: body z is world z
-    return {"position_m": pos, "velocity_mps": vel, "acceleration_mps2": acc,
-            "orientation_xyzw": quat, "angular_velocity_radps": ang}
+    state = plan_platform(platform, geom).evaluate(t_s)
+    return {k: state[k] for k in POSE_KEYS}
 
 
-def evaluate_platform(platform: Platform, t_ns: np.ndarray, scene_dir: Path | None) -> dict[str, np.ndarray]:
+def evaluate_platform(platform: Platform, t_ns: np.ndarray, scene_dir: Path | None,
+                      geom=None) -> dict[str, np.ndarray]:
     """A platform's poses at ``t_ns``: from its waypoints, or replayed from its recording."""
     if platform.trajectory.kind == "replay":
         if scene_dir is None:
             raise ValueError(f"platform {platform.name}: a replayed trajectory needs the scene directory")
         from simart_pipeline.mobility import replay
 
-        rec = replay.read_csv(Path(scene_dir) / platform.trajectory.path)
+        rec = replay.read_recording(platform.trajectory, scene_dir)  # CSV or bag, by file name
         return replay.resample(rec, t_ns, platform.trajectory.time_offset_s)
-    return evaluate_waypoints(platform, clock.ns_to_seconds(t_ns))
+    return evaluate_waypoints(platform, clock.ns_to_seconds(t_ns), geom)
 
 
-def build_trajectory(cfg: SceneConfig, scene_dir: str | Path | None = None) -> xr.Dataset:
-    """Sample every platform's trajectory at the pose rate of the shared clock."""
+def build_trajectory(cfg: SceneConfig, scene_dir: str | Path | None = None, geom=None) -> xr.Dataset:
+    """Sample every platform's trajectory at the pose rate of the shared clock.
+
+    :param geom: the scene's source geometry (``osm_extract``), for road following; built from the
+        config (and ``scene_dir`` for OSM and mesh sources) when a platform may need it.
+    """
+    if geom is None and any(_may_follow_roads(p) for p in cfg.platforms):
+        if cfg.source.kind != "procedural" and scene_dir is None:
+            raise ValueError(f"scene {cfg.name}: its ground vehicles follow roads by default: pass the scene "
+                             "directory or its source geometry (or set follow_roads: false)")
+        from simart_pipeline.scene.geometry import build_source_geometry
+
+        geom = build_source_geometry(cfg, scene_dir)
     t_ns = clock.sample_times_ns(cfg.clock.duration_s, cfg.clock.pose_rate_hz)
-    per = [evaluate_platform(p, t_ns, scene_dir) for p in cfg.platforms]
+    per = [evaluate_platform(p, t_ns, scene_dir, geom) for p in cfg.platforms]
     names = [p.name for p in cfg.platforms]
 
     def stack(key, comp):
@@ -116,9 +160,26 @@ def build_trajectory(cfg: SceneConfig, scene_dir: str | Path | None = None) -> x
                     pose_rate_hz=cfg.clock.pose_rate_hz,
                     model="; ".join(f"{p.name}: " + ("replayed from " + p.trajectory.path
                                                      if p.trajectory.kind == "replay" else
-                                                     "cubic spline through waypoints, level, heading "
-                                                     "along velocity") for p in cfg.platforms))
+                                                     _waypoint_model(p, geom)) for p in cfg.platforms),
+                    dynamics=json.dumps({p.name: _plan_summary(p, geom) for p in cfg.platforms
+                                         if p.trajectory.kind == "waypoints"}, sort_keys=True))
     return ds
+
+
+def _waypoint_model(p: Platform, geom) -> str:
+    route = "along roads through" if follows_roads(p, geom) else "through"
+    att = "quadrotor attitude (body z along a + g)" if p.kind == "uav" else "level"
+    return (f"jerk-limited motion from rest to rest {route} waypoints, clothoid corner blends, "
+            f"{att}, heading along the horizontal velocity (docs/mobility.md)")
+
+
+def _plan_summary(p: Platform, geom) -> dict:
+    """What the stored trajectory's provenance says about a waypoint platform's motion."""
+    plan = plan_platform(p, geom)
+    return {"motion_start_s": plan.start_s, "motion_end_s": round(plan.end_s, 9),
+            "path_length_m": round(plan.path.total_length_m, 6), "time_scaling": plan.time_scaling,
+            "follows_roads": follows_roads(p, geom), "limits": p.limits.model_dump(),
+            "limit_ratios": {k: round(v, 9) for k, v in plan.limit_ratios().items()}}
 
 
 def poses_at(traj: xr.Dataset, platform: str, times_ns: np.ndarray) -> dict[str, np.ndarray]:
