@@ -1,5 +1,6 @@
 """Scene assets: source geometry, paired meshes, trajectories (partitioned by scene)."""
 
+import json
 import time
 
 import dagster as dg
@@ -49,8 +50,6 @@ def trajectory(context: dg.AssetExecutionContext, project: ProjectResource,
                osm_extract: xr.Dataset) -> dg.Output[xr.Dataset]:
     """Platform poses, velocities and accelerations on the shared clock under each platform's dynamic
     limits (ground vehicles along the roads of ``osm_extract``), checked clear of buildings."""
-    import json
-
     scene = context.partition_key
     cfg = project.config(scene)
     geom = geometry.from_dataset(osm_extract.load())
