@@ -370,7 +370,7 @@ class WaypointTrajectory(_Model):
         if len(v) < 2:
             raise ValueError("at least two waypoints are needed")
         for k in range(len(v) - 1):
-            if v[k] == v[k + 1]:
+            if math.dist(v[k], v[k + 1]) <= 1e-9:  # m; the path needs a direction between them
                 raise ValueError(f"waypoints {k} and {k + 1} coincide")
         return v
 

@@ -37,32 +37,28 @@ POSE_KEYS = ("position_m", "velocity_mps", "acceleration_mps2", "orientation_xyz
 CAR_MIN_ROAD_WIDTH_M = 3.0  # narrower centre lines are footways, cycleways and paths (osm_tags widths)
 
 
-def follows_roads(platform: Platform, geom) -> bool:
-    """Whether the platform's waypoints are joined along roads: ``follow_roads``, or by default for
-    ground vehicles when ``geom`` (the source geometry) has road centre lines."""
-    tr = platform.trajectory
-    if tr.kind != "waypoints" or platform.kind == "uav" or tr.follow_roads is False:
-        return False
-    if tr.follow_roads is None:
-        return platform.kind == "ground_vehicle" and geom is not None and bool(roads.road_lines(geom)[0])
-    return True
-
-
 def _may_follow_roads(platform: Platform) -> bool:
+    """Whether the platform follows roads wherever the scene has them (before looking at the scene)."""
     tr = platform.trajectory
     return tr.kind == "waypoints" and platform.kind != "uav" and (
         tr.follow_roads or (tr.follow_roads is None and platform.kind == "ground_vehicle"))
+
+
+def follows_roads(platform: Platform, geom) -> bool:
+    """Whether the platform's waypoints are joined along roads: ``follow_roads``, or by default for
+    ground vehicles when ``geom`` (the source geometry) has road centre lines."""
+    if not _may_follow_roads(platform):
+        return False
+    if platform.trajectory.follow_roads is None:
+        return geom is not None and bool(roads.road_lines(geom)[0])
+    return True
 
 
 def waypoint_path(platform: Platform, geom=None) -> tuple[path.CornerPath, roads.Route | None]:
     """The corner-blended path of a waypoint platform, and its road route when it follows roads."""
     tr = platform.trajectory
     where = f"platform {platform.name}"
-    wp = np.asarray(tr.waypoints_m, dtype=np.float64)
-    seg = np.linalg.norm(np.diff(wp, axis=0), axis=1)
-    if np.any(seg <= 1e-9):
-        k = int(np.argmax(seg <= 1e-9))
-        raise ValueError(f"{where}: trajectory.waypoints_m.{k} and .{k + 1} coincide")
+    wp = np.asarray(tr.waypoints_m, dtype=np.float64)  # consecutive ones apart: config check
     if not follows_roads(platform, geom):
         return path.corner_path(wp, np.full(len(wp), tr.waypoint_tolerance_m)), None
     if geom is None:
@@ -91,14 +87,16 @@ def plan_platform(platform: Platform, geom=None) -> dynamics.MotionPlan:
     return plan
 
 
-def evaluate_waypoints(platform: Platform, t_s: np.ndarray, geom=None) -> dict[str, np.ndarray]:
-    """Position, velocity, acceleration, orientation and body angular rate at times ``t_s`` [n] s."""
-    state = plan_platform(platform, geom).evaluate(t_s)
+def evaluate_waypoints(platform: Platform, t_s: np.ndarray, geom=None,
+                       plan: dynamics.MotionPlan | None = None) -> dict[str, np.ndarray]:
+    """Position, velocity, acceleration, orientation and body angular rate at times ``t_s`` [n] s
+    (``plan``: the platform's :func:`plan_platform`, if the caller has it already)."""
+    state = (plan or plan_platform(platform, geom)).evaluate(t_s)
     return {k: state[k] for k in POSE_KEYS}
 
 
 def evaluate_platform(platform: Platform, t_ns: np.ndarray, scene_dir: Path | None,
-                      geom=None) -> dict[str, np.ndarray]:
+                      geom=None, plan: dynamics.MotionPlan | None = None) -> dict[str, np.ndarray]:
     """A platform's poses at ``t_ns``: from its waypoints, or replayed from its recording."""
     if platform.trajectory.kind == "replay":
         if scene_dir is None:
@@ -107,7 +105,7 @@ def evaluate_platform(platform: Platform, t_ns: np.ndarray, scene_dir: Path | No
 
         rec = replay.read_recording(platform.trajectory, scene_dir)  # CSV or bag, by file name
         return replay.resample(rec, t_ns, platform.trajectory.time_offset_s)
-    return evaluate_waypoints(platform, clock.ns_to_seconds(t_ns), geom)
+    return evaluate_waypoints(platform, clock.ns_to_seconds(t_ns), geom, plan)
 
 
 def build_trajectory(cfg: SceneConfig, scene_dir: str | Path | None = None, geom=None) -> xr.Dataset:
@@ -124,7 +122,8 @@ def build_trajectory(cfg: SceneConfig, scene_dir: str | Path | None = None, geom
 
         geom = build_source_geometry(cfg, scene_dir)
     t_ns = clock.sample_times_ns(cfg.clock.duration_s, cfg.clock.pose_rate_hz)
-    per = [evaluate_platform(p, t_ns, scene_dir, geom) for p in cfg.platforms]
+    plans = {p.name: plan_platform(p, geom) for p in cfg.platforms if p.trajectory.kind == "waypoints"}
+    per = [evaluate_platform(p, t_ns, scene_dir, geom, plans.get(p.name)) for p in cfg.platforms]
     names = [p.name for p in cfg.platforms]
 
     def stack(key, comp):
@@ -161,8 +160,8 @@ def build_trajectory(cfg: SceneConfig, scene_dir: str | Path | None = None, geom
                     model="; ".join(f"{p.name}: " + ("replayed from " + p.trajectory.path
                                                      if p.trajectory.kind == "replay" else
                                                      _waypoint_model(p, geom)) for p in cfg.platforms),
-                    dynamics=json.dumps({p.name: _plan_summary(p, geom) for p in cfg.platforms
-                                         if p.trajectory.kind == "waypoints"}, sort_keys=True))
+                    dynamics=json.dumps({p.name: _plan_summary(p, plans[p.name], geom) for p in cfg.platforms
+                                         if p.name in plans}, sort_keys=True))
     return ds
 
 
@@ -173,9 +172,8 @@ def _waypoint_model(p: Platform, geom) -> str:
             f"{att}, heading along the horizontal velocity (docs/mobility.md)")
 
 
-def _plan_summary(p: Platform, geom) -> dict:
+def _plan_summary(p: Platform, plan: dynamics.MotionPlan, geom) -> dict:
     """What the stored trajectory's provenance says about a waypoint platform's motion."""
-    plan = plan_platform(p, geom)
     return {"motion_start_s": plan.start_s, "motion_end_s": round(plan.end_s, 9),
             "path_length_m": round(plan.path.total_length_m, 6), "time_scaling": plan.time_scaling,
             "follows_roads": follows_roads(p, geom), "limits": p.limits.model_dump(),
