@@ -98,7 +98,7 @@ def main(argv=None) -> int:
     variant = engine.init()
     with tempfile.TemporaryDirectory() as tmp:
         geom, scene_xml = build_scene(cfg, scene_dir, Path(tmp) / "pm")
-        radio = RadioScene(scene_xml, cfg)
+        radio = RadioScene.from_config(scene_xml, cfg)
         tiles = scene_tiles(cfg.ckm)
         tile_layers(radio, cfg, geom, tiles[0])  # warm-up: kernel compilation, for both sides
         t0 = time.perf_counter()

@@ -116,7 +116,7 @@ def run_scene(name: str, spec: dict, num_rays: int, compare_cells: int, loop_cel
 
     cfg = _config()
     t0 = time.perf_counter()
-    radio = RadioScene(getattr(rt.scene, spec["attr"]), cfg)
+    radio = RadioScene.from_config(getattr(rt.scene, spec["attr"]), cfg)
     load_s = time.perf_counter() - t0
     tx = np.array(spec["tx"])
     ori = np.radians([spec["yaw_pitch_deg"][0], spec["yaw_pitch_deg"][1], 0.0])

@@ -38,7 +38,7 @@ def main(argv=None) -> int:
         geom, scene_xml = build_scene(cfg, scene_dir, Path(tmp) / "pm")
         traj = build_trajectory(cfg, scene_dir)
         t0 = time.perf_counter()
-        radio = RadioScene(scene_xml, cfg)
+        radio = RadioScene.from_config(scene_xml, cfg)
         load_s = time.perf_counter() - t0
         radio_cirs.trace_trajectory(radio, cfg, traj, geom)  # warm-up: JIT compilation
         t0 = time.perf_counter()
@@ -48,7 +48,7 @@ def main(argv=None) -> int:
         result = {
             "scene": cfg.name, "variant": variant, "scene_load_s": round(load_s, 3),
             "max_depth": cfg.ray_tracing.max_depth, "samples_per_src": cfg.ray_tracing.samples_per_src,
-            "receivers_per_call": receivers_per_call(cfg),
+            "receivers_per_call": receivers_per_call(cfg.ray_tracing),
             "trajectory": {"time_steps": T, "links": L, "total_s": round(traj_s, 3),
                            "ms_per_time_step": round(1e3 * traj_s / T, 2),
                            "ms_per_link_step": round(1e3 * traj_s / (T * L), 2)},

@@ -15,9 +15,10 @@ import numpy as np
 NS_PER_S = 1_000_000_000
 
 
-def seconds_to_ns(seconds: float) -> int:
-    """Seconds (decimal, as written in a config) to integer nanoseconds, exactly."""
-    return int(Fraction(str(seconds)) * NS_PER_S)
+def seconds_to_ns(seconds: float | str) -> int:
+    """Seconds (decimal, as written in a config or a CSV cell) to integer nanoseconds: exact for up
+    to nine decimals, else rounded to the nearest nanosecond (ties to even)."""
+    return round(Fraction(str(seconds).strip()) * NS_PER_S)
 
 
 def sample_times_ns(duration_s: float, rate_hz: float, start_ns: int = 0) -> np.ndarray:

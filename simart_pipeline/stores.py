@@ -7,6 +7,13 @@ A store is written aside (``.<name>.tmp-<id>``) and renamed into place, so a fai
 never leaves a half-written store, and a rerun replaces the last good version completely or not at
 all. Before a store is written, it is checked: no inf anywhere, and NaN only in variables whose attrs
 say what NaN means (``nan_means``).
+
+A store filled region by region (the CKM mosaic: one region per tile, from concurrent runs) is
+created empty by :func:`create_chunked_store`, written aside and renamed like every other store, and
+filled by :func:`write_region`, which checks each region as above and refuses one that does not
+cover whole chunks (writers sharing a chunk corrupt it silently). Absent chunks read as the fill
+values of :func:`fill_value`: NaN in float variables (which must say what NaN means), -1 in integer
+ones, false in booleans.
 """
 
 from __future__ import annotations
@@ -84,8 +91,20 @@ def _plain_strings(ds: xr.Dataset) -> xr.Dataset:
     return ds.assign_coords(coords).assign(data)
 
 
-def _replace_atomically(tmp: Path, path: Path) -> None:
-    """Swap ``tmp`` into ``path``; the old version stays readable until the final rename."""
+def _replace_atomically(tmp: Path, path: Path, keep_existing: Callable[[Path], bool] | None = None) -> None:
+    """Swap ``tmp`` into ``path``; the old version stays readable until the final rename.
+
+    With ``keep_existing``, a store already at ``path`` (or one that another process renames there
+    first) for which it returns true is kept, and ``tmp`` is discarded by the caller."""
+    if keep_existing is not None:
+        try:
+            os.rename(tmp, path)  # fails where a non-empty directory is in the way
+            return
+        except OSError:
+            if not path.exists():
+                raise
+            if keep_existing(path):  # another writer won the race with an equal store
+                return
     old = None
     if path.exists():
         old = path.with_name(f".{path.name}.old-{uuid.uuid4().hex[:8]}")
@@ -100,15 +119,19 @@ def _replace_atomically(tmp: Path, path: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def write_directory(path: Path, fill: Callable[[Path], None]) -> Path:
-    """Create a directory by calling ``fill(tmp_dir)``, then rename it into place atomically."""
+def write_directory(path: Path, fill: Callable[[Path], None],
+                    keep_existing: Callable[[Path], bool] | None = None) -> Path:
+    """Create a directory by calling ``fill(tmp_dir)``, then rename it into place atomically;
+    ``keep_existing(path)`` true keeps what is already there (see :func:`_replace_atomically`)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    if keep_existing is not None and path.exists() and keep_existing(path):
+        return path
     tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
     try:
         tmp.mkdir()
         fill(tmp)
-        _replace_atomically(tmp, path)
+        _replace_atomically(tmp, path, keep_existing)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
@@ -130,6 +153,70 @@ def write_store(obj: xr.Dataset | xr.DataTree, path: str | Path) -> Path:
                 _portable_strings(obj).to_zarr(tmp, mode="w", zarr_format=3, consolidated=False)
 
     return write_directory(path, fill)
+
+
+def fill_value(dtype) -> object:
+    """What an absent chunk of a variable of ``dtype`` reads as: NaN, -1 or false."""
+    dt = np.dtype(dtype)
+    if dt == bool:
+        return False
+    if np.issubdtype(dt, np.floating):
+        return np.nan
+    return -1
+
+
+def create_chunked_store(path: str | Path,
+                         variables: dict[str, tuple[tuple[str, ...], tuple[int, ...], object, dict, tuple[int, ...]]],
+                         coords: dict[str, tuple[tuple[str, ...], np.ndarray, dict]], attrs: dict,
+                         keep_existing: Callable[[Path], bool] | None = None) -> Path:
+    """An empty Zarr v3 store to be filled by :func:`write_region`: written aside, renamed into place.
+
+    :param variables: name -> (dims, shape, dtype, attrs, chunks); no chunk is written, so every value
+        reads as :func:`fill_value` until a region is written. A float variable must say what NaN means.
+    :param coords: name -> (dims, values, attrs), written in full.
+    :param keep_existing: called with an existing store at ``path``: true keeps it as it is.
+    """
+    for name, (dims, _, dtype, var_attrs, _) in variables.items():
+        if np.issubdtype(np.dtype(dtype), np.floating) and "nan_means" not in var_attrs:
+            raise StoreError(f"{path}: {name} reads as NaN until written but its attrs do not say what "
+                             "NaN means (attr 'nan_means')")
+
+    def fill(tmp: Path) -> None:
+        import zarr
+
+        g = zarr.open_group(tmp, mode="w", zarr_format=3)
+        for name, (dims, shape, dtype, var_attrs, chunks) in variables.items():
+            g.create_array(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill_value(dtype),
+                           dimension_names=dims, attributes=var_attrs)
+        for name, (dims, values, var_attrs) in coords.items():
+            values = np.asarray(values)
+            check_finite(xr.Dataset({name: (dims, values, var_attrs)}), where=f"{path}: ")
+            dtype = str if values.dtype.kind in "OUS" else values.dtype
+            arr = g.create_array(name, shape=values.shape, dtype=dtype, dimension_names=dims,
+                                 attributes=var_attrs)
+            arr[...] = values
+        g.attrs.update(attrs)
+
+    return write_directory(Path(path), fill, keep_existing)
+
+
+def write_region(ds: xr.Dataset, path: str | Path, region: dict[str, slice], chunks: dict[str, int],
+                 sizes: dict[str, int]) -> None:
+    """Write ``ds`` (its data variables, no coordinates) into ``region`` of a store made by
+    :func:`create_chunked_store`, after the checks of :func:`check_finite`.
+
+    :param chunks: the store's chunk length per region dim; ``sizes``: the store's size per dim. A
+        region must start on a chunk boundary and end on one or at the end of its dim.
+    """
+    for dim, sl in region.items():
+        c, n = chunks[dim], sizes[dim]
+        if sl.start % c or not (sl.stop % c == 0 or sl.stop == n):
+            raise StoreError(f"{path}: region {dim}={sl} is not aligned to chunks of {c} (writers sharing "
+                             "a chunk corrupt it)")
+    check_finite(ds, where=f"{path}: ")
+    data = ds.drop_vars(list(ds.coords))
+    data = xr.Dataset({k: xr.Variable(v.dims, v.data) for k, v in data.data_vars.items()})
+    data.to_zarr(path, region=region, mode="r+", consolidated=False, zarr_format=3)
 
 
 def open_store(path: str | Path, tree: bool = False) -> xr.Dataset | xr.DataTree:

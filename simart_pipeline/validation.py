@@ -8,7 +8,7 @@ import numpy as np
 
 from simart_pipeline.config import ConfigError, SceneConfig, load_scene_config
 from simart_pipeline.mobility.trajectory import plan_platform
-from simart_pipeline.scene import geometry
+from simart_pipeline.scene import geometry, source
 
 
 def scene_problems(scene_dir: str | Path) -> tuple[SceneConfig | None, list[str]]:
@@ -21,7 +21,7 @@ def scene_problems(scene_dir: str | Path) -> tuple[SceneConfig | None, list[str]
         return None, exc.problems
     problems: list[str] = []
     try:
-        geom = geometry.build_source_geometry(cfg, scene_dir)
+        geom = source.build_source_geometry(cfg, scene_dir)
     except NotImplementedError as exc:
         return cfg, [f"{where}: source.kind: {exc}"]
     except (OSError, ValueError, RuntimeError) as exc:

@@ -13,10 +13,10 @@ def tiny_built(tmp_path_factory):
     """tests/scenes/tiny built once: (config, source geometry, paired meshes, their directory)."""
     from simart_pipeline import stores
     from simart_pipeline.config import load_scene_config
-    from simart_pipeline.scene import geometry, meshes
+    from simart_pipeline.scene import meshes, source
 
     cfg = load_scene_config(TESTS / "scenes" / "tiny")
-    geom = geometry.build_source_geometry(cfg, TESTS / "scenes" / "tiny")
+    geom = source.build_source_geometry(cfg, TESTS / "scenes" / "tiny")
     m = meshes.build_meshes(geom)
     out = tmp_path_factory.mktemp("pm") / "tiny"
     stores.write_directory(out, lambda d: meshes.save(m, d, {"name": "tiny"}, cfg.materials.thickness_m))

@@ -44,7 +44,7 @@ def test_flat_ground_cells_follow_the_two_ray_model(tiny_scene, tmp_path):
     from the transmitter's azimuth), and line of sight."""
     cfg = _cfg(tiny_scene, _single_bs_iso)
     xml = write_radio_scene(tmp_path / "flat", {"ground": (ground_square(), "medium_dry_ground")}, FC, 10.0)
-    radio = RadioScene(xml, cfg)
+    radio = RadioScene.from_config(xml, cfg)
     ds = tile_layers(radio, cfg, geometry.SourceGeometry(), "r0c0").isel(bs=0, height=0)
     eps_r, sigma, _ = radio.material_properties()["ground"]
     xx, yy = np.meshgrid(ds["x"].values, ds["y"].values)
@@ -69,7 +69,7 @@ def test_flat_ground_cells_follow_the_two_ray_model(tiny_scene, tmp_path):
 
 def test_single_path_cells_have_zero_spreads(tiny_scene):
     cfg = _cfg(tiny_scene, _single_bs_iso)
-    ds = tile_layers(RadioScene(None, cfg), cfg, geometry.SourceGeometry(), "r0c0").isel(bs=0, height=0)
+    ds = tile_layers(RadioScene.from_config(None, cfg), cfg, geometry.SourceGeometry(), "r0c0").isel(bs=0, height=0)
     assert (ds["count"].values == 1).all()
     for name in ("rms_delay_spread_s", "asa_deg", "zsa_deg", "asd_deg", "zsd_deg"):
         np.testing.assert_allclose(ds[name].values, 0.0, atol=1e-3 if name.endswith("deg") else 1e-15)
@@ -87,7 +87,7 @@ def test_a_cell_behind_a_metal_wall_has_no_line_of_sight(tiny_scene, tmp_path):
                             FC, 0.2)
     geom = geometry.SourceGeometry([geometry.Feature("building", shapely.box(49.5, -30, 50.5, 30), 1,
                                                      height_m=40.0, min_height_m=0.0, radio_material="metal")])
-    ds = tile_layers(RadioScene(xml, cfg), cfg, geom, "r0c0").isel(bs=0, height=0)
+    ds = tile_layers(RadioScene.from_config(xml, cfg), cfg, geom, "r0c0").isel(bs=0, height=0)
     x = ds["x"].values
     behind = x > 50.5
     assert behind.any() and (~behind).any()
@@ -99,7 +99,7 @@ def test_masked_cells_are_never_traced_and_empty_tiles_need_no_scene(tiny_built,
     cfg, geom, _, out = tiny_built
     cfg = _cfg(tiny_scene, lambda raw: raw["ckm"].update(
         region_m=[[-10.0, -15.0], [10.0, -15.0], [10.0, 15.0], [-10.0, 15.0]]))
-    ds = tile_layers(RadioScene(meshes.radio_scene_file(out), cfg), cfg, geom, "r0c0")
+    ds = tile_layers(RadioScene.from_config(meshes.radio_scene_file(out), cfg), cfg, geom, "r0c0")
     inside = ds["cell_inside_building"].values
     outside = ds["cell_outside_region"].values
     assert inside.any() and outside.any()
@@ -119,7 +119,7 @@ def test_equal_interferers_give_the_expected_sinr(tiny_scene):
         raw["base_stations"] = [dict(raw["base_stations"][0], name="a", position_m=[-50.0, 0.0, 20.0]),
                                 dict(raw["base_stations"][0], name="b", position_m=[50.0, 0.0, 20.0])]
     cfg = _cfg(tiny_scene, edit)
-    ds = tile_layers(RadioScene(None, cfg), cfg, geometry.SourceGeometry(), "r0c0")
+    ds = tile_layers(RadioScene.from_config(None, cfg), cfg, geometry.SourceGeometry(), "r0c0")
     snr = 10 ** (float(ds["snr_db"].values.ravel()[0]) / 10)
     sinr = 10 ** (float(ds["sinr_db"].values.ravel()[0]) / 10)
     np.testing.assert_allclose(sinr, 1 / (1 + 1 / snr), rtol=1e-4)
@@ -139,7 +139,7 @@ def test_tile_backfills_in_any_order_equal_one_full_run(tiny_built, tiny_scene, 
     (a single tile with other chunking); a failed tile leaves the others intact and is rerun."""
     cfg, geom, _, out = tiny_built
     cfg = _cfg(tiny_scene, lambda raw: raw["ckm"].update(tiles=[3, 2], size_m=[45.0, 35.0]))
-    radio = RadioScene(meshes.radio_scene_file(out), cfg)
+    radio = RadioScene.from_config(meshes.radio_scene_file(out), cfg)
     tiles = scene_tiles(cfg.ckm)
     assert len(tiles) == 6 and chunk_shape(cfg.ckm) == (4, 3)
     rng = np.random.default_rng(7)
@@ -150,7 +150,7 @@ def test_tile_backfills_in_any_order_equal_one_full_run(tiny_built, tiny_scene, 
     _write_map(tmp_path / "a.zarr", cfg, geom, radio, first[3:] + first[:1])  # the rest, one twice
     _write_map(tmp_path / "b.zarr", cfg, geom, radio, list(rng.permutation(tiles)))
     full_cfg = _cfg(tiny_scene, lambda raw: raw["ckm"].update(tiles=[1, 1], size_m=[45.0, 35.0]))
-    _write_map(tmp_path / "full.zarr", full_cfg, geom, RadioScene(meshes.radio_scene_file(out), full_cfg), ["r0c0"])
+    _write_map(tmp_path / "full.zarr", full_cfg, geom, RadioScene.from_config(meshes.radio_scene_file(out), full_cfg), ["r0c0"])
     a, b, full = (mosaic.open_map(tmp_path / f"{n}.zarr").load() for n in ("a", "b", "full"))
     assert a["tile_complete"].all() and b["tile_complete"].all()
     layers = [v for v in full.data_vars if v != "tile_complete"]
@@ -209,7 +209,7 @@ def test_path_gain_agrees_with_sionna_radio_map_solver_where_the_field_is_smooth
 
     cfg, geom, _, out = tiny_built
     cfg = _cfg(tiny_scene, lambda raw: raw["ckm"].update(tiles=[1, 1], size_m=[80.0, 60.0], cell_size_m=4.0))
-    radio = RadioScene(meshes.radio_scene_file(out), cfg)
+    radio = RadioScene.from_config(meshes.radio_scene_file(out), cfg)
     layer = tile_layers(radio, cfg, geom, "r0c0")["path_gain_db"].values[:, 0]
     rm = radio_map_path_gain_db(radio, cfg, cfg.ckm.heights[0], samples_per_tx=2 * 10**6)
     both = np.isfinite(layer) & np.isfinite(rm)
@@ -226,7 +226,7 @@ def test_fast_mode_writes_the_same_layers_and_agrees_with_the_reference(tiny_bui
     ref_cfg = _cfg(tiny_scene, lambda raw: raw["ckm"].update(tiles=[1, 1], cell_size_m=2.0))
     fast_cfg = _cfg(tiny_scene, lambda raw: raw["ckm"].update(tiles=[1, 1], cell_size_m=2.0, mode="fast",
                                                               num_rays=1_000_000))
-    radio = RadioScene(meshes.radio_scene_file(out), ref_cfg)
+    radio = RadioScene.from_config(meshes.radio_scene_file(out), ref_cfg)
     ref = tile_layers(radio, ref_cfg, geom, "r0c0")
     fast = tile_layers(radio, fast_cfg, geom, "r0c0")
     assert set(ref.data_vars) == set(fast.data_vars)

@@ -88,3 +88,57 @@ def test_non_finite_values_are_refused(tmp_path):
 def test_unsafe_partition_keys_are_refused(tmp_path, bad):
     with pytest.raises(stores.StoreError, match="unsafe"):
         stores.store_path(tmp_path, "cirs", "demo", bad)
+
+
+def _region_store(path, keep_existing=None, tag="a"):
+    """A 4 x 6 float map in chunks of 2 x 3 and an int flag per chunk, nothing written yet."""
+    variables = {"gain_db": (("y", "x"), (4, 6), np.float32, {"units": "dB", "nan_means": "not written"}, (2, 3)),
+                 "count": (("y", "x"), (4, 6), np.int16, {"units": "1"}, (2, 3)),
+                 "done": (("y", "x"), (4, 6), bool, {}, (2, 3))}
+    coords = {"y": (("y",), np.arange(4.0), {"units": "m"}), "x": (("x",), np.arange(6.0), {"units": "m"})}
+    return stores.create_chunked_store(path, variables, coords, {"tag": tag}, keep_existing=keep_existing)
+
+
+def test_region_writes_are_checked_like_every_store(tmp_path):
+    path = _region_store(tmp_path / "m.zarr")
+    empty = xr.open_zarr(path, consolidated=False).load()
+    assert np.isnan(empty["gain_db"]).all() and (empty["count"] == -1).all() and not empty["done"].any()
+    part = xr.Dataset({"gain_db": (("y", "x"), np.full((2, 3), 1.5, np.float32), {"nan_means": "x"}),
+                       "count": (("y", "x"), np.full((2, 3), 7, np.int16)),
+                       "done": (("y", "x"), np.ones((2, 3), bool))})
+    aligned = {"y": slice(2, 4), "x": slice(3, 6)}
+    stores.write_region(part, path, aligned, chunks={"y": 2, "x": 3}, sizes={"y": 4, "x": 6})
+    with pytest.raises(stores.StoreError, match="not aligned"):
+        stores.write_region(part, path, {"y": slice(1, 3), "x": slice(0, 3)}, chunks={"y": 2, "x": 3},
+                            sizes={"y": 4, "x": 6})
+    bad = part.assign(gain_db=part["gain_db"].where(part["count"] < 0, np.inf))
+    with pytest.raises(stores.StoreError, match="inf"):
+        stores.write_region(bad, path, {"y": slice(0, 2), "x": slice(0, 3)}, chunks={"y": 2, "x": 3},
+                            sizes={"y": 4, "x": 6})
+    after = xr.open_zarr(path, consolidated=False).load()
+    written = np.zeros((4, 6), bool)
+    written[2:, 3:] = True
+    assert (after["gain_db"].values[written] == 1.5).all() and np.isnan(after["gain_db"].values[~written]).all()
+    assert (after["count"].values[written] == 7).all() and (after["count"].values[~written] == -1).all()
+
+
+def test_chunked_store_needs_nan_meanings_and_keeps_an_equal_template(tmp_path):
+    with pytest.raises(stores.StoreError, match="nan_means"):
+        stores.create_chunked_store(tmp_path / "n.zarr", {"v": (("x",), (4,), np.float64, {}, (2,))},
+                                    {"x": (("x",), np.arange(4), {})}, {})
+    assert not (tmp_path / "n.zarr").exists()
+    path = _region_store(tmp_path / "m.zarr")
+    part = xr.Dataset({"gain_db": (("y", "x"), np.zeros((2, 3), np.float32), {"nan_means": "x"}),
+                       "count": (("y", "x"), np.zeros((2, 3), np.int16)), "done": (("y", "x"), np.ones((2, 3), bool))})
+    stores.write_region(part, path, {"y": slice(0, 2), "x": slice(0, 3)}, chunks={"y": 2, "x": 3},
+                        sizes={"y": 4, "x": 6})
+
+    def equal_to(tag):
+        return lambda p: xr.open_zarr(p, consolidated=False).attrs["tag"] == tag
+
+    _region_store(path, keep_existing=equal_to("a"), tag="a")  # an equal template: its tiles stay
+    assert bool(xr.open_zarr(path, consolidated=False)["done"][0, 0])
+    _region_store(path, keep_existing=equal_to("b"), tag="b")  # another template: replaced, empty again
+    again = xr.open_zarr(path, consolidated=False)
+    assert again.attrs["tag"] == "b" and not bool(again["done"][0, 0])
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []

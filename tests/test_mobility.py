@@ -12,14 +12,14 @@ from shapely.geometry import LineString
 
 from conftest import SHARED_DATA, TESTS
 
-from simart_pipeline.config import DEFAULT_LIMITS, GRAVITY_MPS2, ConfigError, SceneConfig, load_scene_config
+from simart_pipeline.config import DEFAULT_LIMITS, ConfigError, SceneConfig, load_scene_config
 from simart_pipeline.mobility import roads
 from simart_pipeline.mobility import path as geo
 from simart_pipeline.mobility.trajectory import (build_trajectory, check_clear_of_buildings, plan_platform,
                                                  waypoint_path)
-from simart_pipeline.scene import geometry
+from simart_pipeline.scene import geometry, source
 from simart_pipeline.scene.geometry import Feature, SourceGeometry
-from simart_pipeline.sensing.inertial import STANDARD_GRAVITY_MPS2
+from simart_pipeline.vocabulary import STANDARD_GRAVITY_MPS2
 from simart_pipeline.validation import scene_problems
 
 ORIGIN = {"latitude_deg": 48.1372, "longitude_deg": 11.5755, "altitude_m": 519.0}
@@ -226,7 +226,8 @@ def test_limits_have_kind_defaults_and_are_checked_in_the_config(tiny_scene):
     lim = cfg.platforms[0].limits
     assert lim.max_speed_mps == 1.2 and lim.max_jerk_mps3 == DEFAULT_LIMITS["pedestrian"]["max_jerk_mps3"]
     assert scene().platforms[0].limits.max_height_above_ground_m == DEFAULT_LIMITS["uav"]["max_height_above_ground_m"]
-    assert GRAVITY_MPS2 == STANDARD_GRAVITY_MPS2  # the config's UAV check and the IMU share one g
+    with pytest.raises(ValueError, match="below g"):  # the config's UAV check uses the one g
+        scene(limits={"max_acceleration_mps2": STANDARD_GRAVITY_MPS2})
 
     def problems(edit):
         raw = yaml.safe_load((TESTS / "scenes" / "tiny" / "scene.yaml").read_text())
@@ -269,7 +270,7 @@ def _demo_with_car(waypoints, **traj):
                              "trajectory": {"waypoints_m": waypoints, "speed_mps": 12.0, **traj}})
     raw["clock"]["duration_s"] = 60.0
     cfg = SceneConfig.model_validate(raw)
-    return cfg, geometry.build_source_geometry(cfg, TESTS.parent / "scenes" / "demo")
+    return cfg, source.build_source_geometry(cfg, TESTS.parent / "scenes" / "demo")
 
 
 def test_ground_vehicle_on_the_demo_streets_stays_on_the_road_and_takes_a_shortest_route():
@@ -316,7 +317,7 @@ def test_route_matches_networkx_on_the_neukoelln_extract_and_stays_on_the_road(t
         "platforms": [{"name": "p0", "kind": "pedestrian", "trajectory": {"waypoints_m": [[0, 0, 1], [1, 0, 1]],
                                                                           "speed_mps": 1}}],
         "clock": {"duration_s": 1}})
-    geom = geometry.build_source_geometry(cfg, d)
+    geom = source.build_source_geometry(cfg, d)
     lines, widths = roads.road_lines(geom, 3.0)
     pieces, _ = roads.noded_pieces(lines, widths)
     # Independent answer: networkx over every vertex of the noded centre lines.
@@ -372,7 +373,7 @@ def test_waypoint_far_from_any_road_is_refused_by_name(tiny_scene):
 
 def test_demo_uav_stays_clear_of_buildings_over_its_whole_flight():
     cfg = load_scene_config(TESTS.parent / "scenes" / "demo")
-    geom = geometry.build_source_geometry(cfg, TESTS.parent / "scenes" / "demo")
+    geom = source.build_source_geometry(cfg, TESTS.parent / "scenes" / "demo")
     plan = plan_platform(cfg.platforms[0], geom)
     longer = cfg.model_copy(update={"clock": cfg.clock.model_copy(update={"duration_s": float(np.ceil(plan.end_s))})})
     ds = build_trajectory(longer, geom=geom)

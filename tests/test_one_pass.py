@@ -105,7 +105,7 @@ def _itu(a, b, c, d):
 
 @pytest.fixture(scope="module")
 def free_space():
-    return RadioScene(None, _cfg(pattern="tr38901"))
+    return RadioScene.from_config(None, _cfg(pattern="tr38901"))
 
 
 def test_free_space_gain_is_friis_with_the_element_pattern_toa_is_distance_spreads_zero(free_space):
@@ -149,7 +149,7 @@ def test_beam_gains_follow_the_array_factor_of_the_dft_codebook(tmp_path):
     # a ground plane: each cell has a line-of-sight path and a ground reflection, whose beam gains
     # follow the array factor of their own departure directions
     xml = _write_scene(tmp_path / "g", {"ground": (_ground(), "medium_dry_ground")}, 10.0)
-    radio = RadioScene(xml, _cfg(rows=4, cols=4, pattern="tr38901"))
+    radio = RadioScene.from_config(xml, _cfg(rows=4, cols=4, pattern="tr38901"))
     ant = radio.array_positions_m("tx")
     cb = dft_codebook(ant, radio.wavelength_m, rows=4, cols=4)
     tx, ori = np.array([0.0, 0.0, 15.0]), np.array([0.5, 0.3, 0.0])
@@ -197,7 +197,7 @@ def test_beam_gains_follow_the_array_factor_of_the_dft_codebook(tmp_path):
 
 def test_ground_plane_gain_and_delay_spread_follow_the_two_ray_model(tmp_path):
     xml = _write_scene(tmp_path / "g", {"ground": (_ground(), "medium_dry_ground")}, 10.0)  # thick: half-space
-    radio = RadioScene(xml, _cfg())
+    radio = RadioScene.from_config(xml, _cfg())
     tx = np.array([0.0, 0.0, 10.0])
     x, y = _axes(2.0, 10, -6.0, 6, 2.0)
     m = op.one_pass_moments(radio, tx, np.zeros(3), x, y, np.array([1.5]), 1_000_000, 2)
@@ -231,7 +231,7 @@ def test_ground_plane_gain_and_delay_spread_follow_the_two_ray_model(tmp_path):
 def test_one_wall_reflects_with_the_itu_slab_te_tm_coefficients(tmp_path, tx_pol):
     thickness = 0.2
     xml = _write_scene(tmp_path / "w", {"wall": (_wall(12.0), "concrete")}, thickness)
-    radio = RadioScene(xml, _cfg(polarization=tx_pol))
+    radio = RadioScene.from_config(xml, _cfg(polarization=tx_pol))
     tx = np.array([0.0, 0.0, 6.0])
     x, y = _axes(1.0, 5, -8.0, 8, 2.0)
     runs = {pol: op.one_pass_moments(radio, tx, np.zeros(3), x, y, np.array([1.5]), 1_000_000, 1,
@@ -272,7 +272,7 @@ def test_one_wall_reflects_with_the_itu_slab_te_tm_coefficients(tmp_path, tx_pol
 def test_results_do_not_depend_on_the_batch_size(tmp_path):
     xml = _write_scene(tmp_path / "gw", {"ground": (_ground(), "medium_dry_ground"),
                                          "wall": (_wall(12.0), "brick")}, 0.3)
-    radio = RadioScene(xml, _cfg(rows=2, cols=2, pattern="tr38901"))
+    radio = RadioScene.from_config(xml, _cfg(rows=2, cols=2, pattern="tr38901"))
     cb = dft_codebook(radio.array_positions_m("tx"), radio.wavelength_m, rows=2, cols=2).weights
     x, y = _axes(-4.0, 8, -6.0, 6, 2.0)
     args = (radio, np.array([0.0, 1.0, 8.0]), np.array([0.2, 0.1, 0.0]), x, y, np.array([1.5, 3.0]), 200_000, 2)
@@ -351,7 +351,7 @@ def test_cells_inside_buildings_are_masked_whatever_the_face_orientation(tmp_pat
     for name, mesh in (("out", box), ("in", flipped)):
         xml = _write_scene(tmp_path / name, {"ground": (_ground(), "medium_dry_ground"),
                                              "building": (mesh, "concrete")}, 0.2)
-        radio = RadioScene(xml, _cfg())
+        radio = RadioScene.from_config(xml, _cfg())
         frac = op.outdoor_fraction(radio, x, y, [1.5])[0]
         X, Y = np.meshgrid(x, y)
         inside_x = np.clip((np.minimum(X + 1, 10) - np.maximum(X - 1, 0)) / 2, 0, 1)
@@ -368,7 +368,7 @@ def test_gain_agrees_with_sionna_radio_map_solver():
     import mitsuba as mi
     import sionna.rt as rt
 
-    radio = RadioScene(rt.scene.simple_street_canyon, _cfg(rows=2, cols=2, pattern="tr38901"))
+    radio = RadioScene.from_config(rt.scene.simple_street_canyon, _cfg(rows=2, cols=2, pattern="tr38901"))
     tx, ori = np.array([-30.0, 5.0, 20.0]), np.array([0.3, 0.1, 0.0])
     cell, centre, size = 4.0, (0.0, 0.0, 1.5), (120.0, 60.0)
     x, y = _axes(-60.0, 30, -30.0, 15, cell)

@@ -16,7 +16,7 @@ import yaml
 
 from conftest import SHARED_DATA
 from simart_pipeline.config import ConfigError, Materials, load_scene_config
-from simart_pipeline.scene import geometry
+from simart_pipeline.scene import geometry, source
 from simart_pipeline.scene.osm import OsmReadError, read_extract
 from simart_pipeline.scene.osm_tags import building_heights, parse_length_m, roof_of
 
@@ -262,7 +262,7 @@ def test_scene_config_reads_an_extract_inside_its_folder(tmp_path):
     d = _osm_scene(tmp_path, "extract.osm")
     (d / "extract.osm").symlink_to(OSM / "small_block.osm")   # a link the user placed: allowed
     cfg = load_scene_config(d)
-    geom = geometry.build_source_geometry(cfg, d)
+    geom = source.build_source_geometry(cfg, d)
     assert geom.origin == (48.136, 10.069, 0.0) and len(geom.of_class("building")) > 20
 
 

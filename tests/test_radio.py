@@ -44,9 +44,27 @@ def _ground(size=2000.0):
     return ground_square(size)
 
 
+def test_tracer_from_explicit_arguments_equals_the_one_from_a_scene_config(tiny_scene):
+    """A notebook builds the tracer from keyword arguments; the scene config is one way to fill them."""
+    from simart_pipeline.config import Array, RayTracing
+
+    cfg = _cfg(tiny_scene, _iso(max_depth=1))
+    explicit = RadioScene(None, frequency_hz=FC, bandwidth_hz=cfg.ofdm.bandwidth_hz,
+                          tx_array=Array(rows=1, cols=1, pattern="iso", polarization="V"),
+                          rx_array=Array(rows=1, cols=1, pattern="iso", polarization="V"),
+                          solver=RayTracing(**cfg.ray_tracing.model_dump()), weather="rainy",
+                          material_thickness_m=10.0)
+    from_cfg = RadioScene.from_config(None, cfg, "rainy")
+    assert explicit.content_sha256() == from_cfg.content_sha256()
+    tx, rx = np.array([[0.0, 0.0, 10.0]]), np.array([[30.0, 40.0, 1.5]])
+    a, b = (r.trace(tx, np.zeros((1, 3)), rx) for r in (explicit, from_cfg))
+    np.testing.assert_array_equal(a.a, b.a)
+    np.testing.assert_array_equal(a.tau_s, b.tau_s)
+
+
 def test_empty_scene_has_exactly_one_path_matching_friis_and_light_delay(tiny_scene):
     cfg = _cfg(tiny_scene, _iso())
-    radio = RadioScene(None, cfg)
+    radio = RadioScene.from_config(None, cfg)
     tx = np.array([[0.0, 0.0, 10.0]])
     d = np.array([5.0, 50.0, 500.0, 2000.0])
     rx = np.column_stack([d, np.zeros_like(d), np.full_like(d, 10.0)])
@@ -73,7 +91,7 @@ def test_ground_reflection_is_two_ray_with_fresnel(tiny_scene, tmp_path, polariz
     swaps the ground for ITU wet ground, and the reflection follows its constants."""
     cfg = _cfg(tiny_scene, _iso(polarization))
     xml = _write_scene(tmp_path / "flat", {"ground": (_ground(), "medium_dry_ground")}, thickness_m=10.0)
-    radio = RadioScene(xml, cfg, weather)
+    radio = RadioScene.from_config(xml, cfg, weather)
     assert radio.radio_materials()["ground"] == ("wet_ground" if weather == "rainy" else "medium_dry_ground")
     eps_r, sigma, thickness = radio.material_properties()["ground"]
     assert thickness == 10.0  # a lossy 10 m slab reflects like a half-space
@@ -98,7 +116,7 @@ def test_ground_reflection_is_two_ray_with_fresnel(tiny_scene, tmp_path, polariz
 @pytest.mark.parametrize("direction", [+1.0, -1.0])
 def test_doppler_of_radial_motion_is_v_f_over_c(tiny_scene, direction):
     cfg = _cfg(tiny_scene, _iso())
-    radio = RadioScene(None, cfg)
+    radio = RadioScene.from_config(None, cfg)
     v = 25.0 * direction  # +: moving away from the transmitter
     p = radio.trace(np.array([[0.0, 0.0, 10.0]]), np.zeros((1, 3)), np.array([[100.0, 0.0, 10.0]]),
                     rx_velocities=np.array([[v, 0.0, 0.0]]))
@@ -111,7 +129,7 @@ def test_receiver_enclosed_in_a_metal_box_gets_no_path(tiny_scene, tmp_path):
     box.apply_translation([50.0, 0.0, 2.0])
     assert box.is_watertight
     xml = _write_scene(tmp_path / "box", {"box": (box, "metal"), "ground": (_ground(), "concrete")}, 0.2)
-    radio = RadioScene(xml, cfg)
+    radio = RadioScene.from_config(xml, cfg)
     p = radio.trace(np.array([[0.0, 0.0, 10.0]]), np.zeros((1, 3)),
                     np.array([[50.0, 0.0, 2.0], [50.0, 10.0, 2.0]]))
     assert p.valid[0].sum() == 0
@@ -123,24 +141,24 @@ def test_batches_and_memory_budget_do_not_change_paths(tiny_built):
     rx = np.array([[-30.0, -18.0, 1.5], [0.0, -18.0, 1.5], [25.0, 10.0, 1.5], [5.0, 0.0, 1.5],
                    [-20.0, 12.0, 1.5]])
     tx = np.array([b.position_m for b in cfg.base_stations])
-    one = RadioScene(meshes.radio_scene_file(out), cfg).trace(tx, np.zeros((2, 3)), rx)
+    one = RadioScene.from_config(meshes.radio_scene_file(out), cfg).trace(tx, np.zeros((2, 3)), rx)
     small = cfg.model_copy(update={"ray_tracing": cfg.ray_tracing.model_copy(update={"max_receivers_per_call": 2})})
-    assert receivers_per_call(small) == 2
-    two = RadioScene(meshes.radio_scene_file(out), small).trace(tx, np.zeros((2, 3)), rx)
+    assert receivers_per_call(small.ray_tracing) == 2
+    two = RadioScene.from_config(meshes.radio_scene_file(out), small).trace(tx, np.zeros((2, 3)), rx)
     for f in ("valid", "tau_s", "interaction"):
         np.testing.assert_array_equal(getattr(one, f)[..., :two.tau_s.shape[-1]], getattr(two, f)[..., :one.tau_s.shape[-1]])
     np.testing.assert_allclose(one.a, two.a, rtol=1e-6, atol=0)
     # The memory budget caps the receivers per call: 48 B x depth x samples x receivers.
     rt = cfg.ray_tracing.model_copy(update={"max_solver_memory_gib": 1.0, "samples_per_src": 1_000_000,
                                             "max_depth": 4})
-    assert receivers_per_call(cfg.model_copy(update={"ray_tracing": rt})) == 2**30 // (48 * 4 * 1_000_000)
+    assert receivers_per_call(rt) == 2**30 // (48 * 4 * 1_000_000)
 
 
 def test_flags_fills_and_no_nan_in_the_cir_store(tiny_built, tmp_path):
     """A receiver 5 mm from a transmitter, one inside a building and one in a closed corner are
     flagged and never usable; invalid entries hold documented fills; no NaN or inf is stored."""
     cfg, geom, _, out = tiny_built
-    radio = RadioScene(meshes.radio_scene_file(out), cfg)
+    radio = RadioScene.from_config(meshes.radio_scene_file(out), cfg)
     bs0 = np.array(cfg.base_stations[0].position_m)
     building = geom.of_class("building")[0].geometry.centroid
     rx = np.array([[bs0[0] + 0.005, bs0[1], bs0[2]], [building.x, building.y, 1.5], [0.0, -18.0, 1.5]])
@@ -170,9 +188,9 @@ def test_flags_fills_and_no_nan_in_the_cir_store(tiny_built, tmp_path):
 
 def test_same_config_twice_gives_bitwise_equal_stores(tiny_built, tmp_path):
     cfg, geom, _, out = tiny_built
-    traj = build_trajectory(cfg)
+    traj = build_trajectory(cfg, geom=geom)
     for run in ("a", "b"):
-        radio = RadioScene(meshes.radio_scene_file(out), cfg)
+        radio = RadioScene.from_config(meshes.radio_scene_file(out), cfg)
         ds = radio_cirs.trace_trajectory(radio, cfg, traj, geom)
         stores.write_store(ds, tmp_path / f"{run}.zarr")
     files_a = sorted(f.relative_to(tmp_path / "a.zarr") for f in (tmp_path / "a.zarr").rglob("*") if f.is_file())
@@ -185,7 +203,7 @@ def test_same_config_twice_gives_bitwise_equal_stores(tiny_built, tmp_path):
 
 def test_offline_replay_from_csv_gives_identical_cirs(tiny_built, tmp_path):
     cfg, geom, _, out = tiny_built
-    traj = build_trajectory(cfg)
+    traj = build_trajectory(cfg, geom=geom)
     scene_dir = tmp_path / "replayed"
     scene_dir.mkdir()
     replay.write_csv(traj, "car0", scene_dir / "car0.csv")
@@ -194,7 +212,7 @@ def test_offline_replay_from_csv_gives_identical_cirs(tiny_built, tmp_path):
     traj2 = build_trajectory(cfg2, scene_dir)
     for k in ("position_m", "velocity_mps", "orientation_xyzw"):
         np.testing.assert_array_equal(traj2[k].values, traj[k].values)
-    radio = RadioScene(meshes.radio_scene_file(out), cfg)
+    radio = RadioScene.from_config(meshes.radio_scene_file(out), cfg)
     a = radio_cirs.trace_trajectory(radio, cfg, traj, geom)
     b = radio_cirs.trace_trajectory(radio, cfg2, traj2, geom)
     for name in ("a", "tau_s", "valid", "doppler_hz", "phi_r_rad", "interaction"):
@@ -234,7 +252,7 @@ def test_replay_outside_the_scene_directory_is_a_config_problem(tiny_scene):
 def test_rain_wets_ground_and_facades_and_dry_weathers_share_a_content_hash(tiny_built):
     cfg, _, _, out = tiny_built
     xml = meshes.radio_scene_file(out)
-    dry, night, wet = (RadioScene(xml, cfg, w) for w in ("sunny", "night", "rainy"))
+    dry, night, wet = (RadioScene.from_config(xml, cfg, w) for w in ("sunny", "night", "rainy"))
     before, after = dry.radio_materials(), wet.radio_materials()
     assert set(before.values()) >= {"concrete", "medium_dry_ground"}
     assert {after[k] for k, v in before.items() if v == "concrete"} == {"wet_concrete"}
@@ -281,8 +299,8 @@ def test_paths_picture_is_a_png(tiny_built):
     from simart_pipeline.radio.pictures import traced_paths_markdown
 
     cfg, geom, _, out = tiny_built
-    radio = RadioScene(meshes.radio_scene_file(out), cfg)
-    lg = radio_cirs.link_geometry(cfg, build_trajectory(cfg))
+    radio = RadioScene.from_config(meshes.radio_scene_file(out), cfg)
+    lg = radio_cirs.link_geometry(cfg, build_trajectory(cfg, geom=geom))
     md = traced_paths_markdown(radio, cfg, lg, geom, 2, title="tiny")
     png = base64.b64decode(md.split("base64,", 1)[1].rstrip(")"))
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
@@ -290,7 +308,7 @@ def test_paths_picture_is_a_png(tiny_built):
 
 def test_paths_are_sorted_valid_first_then_by_delay_then_by_interactions(tiny_built):
     cfg, _, _, out = tiny_built
-    radio = RadioScene(meshes.radio_scene_file(out), cfg)
+    radio = RadioScene.from_config(meshes.radio_scene_file(out), cfg)
     tx = np.array([b.position_m for b in cfg.base_stations])
     rx = np.array([[-30.0, -18.0, 1.5], [0.0, -18.0, 1.5], [25.0, 10.0, 1.5]])
     p1 = radio.trace(tx, np.zeros((2, 3)), rx)
@@ -314,8 +332,8 @@ def test_per_antenna_gains_are_rebuilt_from_one_gain_and_the_array_geometry(tiny
     cfg, geom, _, out = tiny_built
     cfg = cfg.model_copy(update={"platforms": (cfg.platforms[0].model_copy(update={
         "array": cfg.base_stations[0].array.model_copy(update={"pattern": "iso"})}),)})
-    radio = RadioScene(meshes.radio_scene_file(out), cfg)
-    lg = radio_cirs.link_geometry(cfg, build_trajectory(cfg))
+    radio = RadioScene.from_config(meshes.radio_scene_file(out), cfg)
+    lg = radio_cirs.link_geometry(cfg, build_trajectory(cfg, geom=geom))
     lg.rx_orientation_rad[:] = [0.4, 0.1, -0.2]  # a tilted receiver
     p = radio.trace(lg.tx_position_m, np.array([[0.3, 0.2, 0.1], [2.0, -0.1, 0.0]]),
                     lg.rx_position_m.reshape(-1, 3), rx_orientations_rad=lg.rx_orientation_rad.reshape(-1, 3))

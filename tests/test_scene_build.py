@@ -15,7 +15,7 @@ from conftest import REPO, SHARED_DATA
 from simart_pipeline.cli import main
 from simart_pipeline.config import load_scene_config
 from simart_pipeline.radio import materials as radio_materials
-from simart_pipeline.scene import build, extrude, geometry, meshes
+from simart_pipeline.scene import build, extrude, geometry, meshes, source
 from simart_pipeline.scene.osm import OsmReadError, read_extract
 from simart_pipeline.validation import scene_problems
 
@@ -274,7 +274,7 @@ def test_urban_scene_validates_and_the_asset_builds_what_the_cli_builds(tmp_path
     cfg, problems = scene_problems(scene_dir)
     assert problems == [], problems
     cfg = load_scene_config(scene_dir)
-    geom = geometry.build_source_geometry(cfg, scene_dir)
+    geom = source.build_source_geometry(cfg, scene_dir)
     assert {"building", "building_part", "road", "parking", "water", "vegetation"} <= {f.feature_class for f in geom.features}
     assert {f.roof_shape for f in geom.volumes()} >= {"flat", "gabled", "hipped", "pyramidal", "skillion"}
     asset = build.paired_meshes_for_scene(cfg, scene_dir, geometry.from_dataset(geometry.to_dataset(geom)))

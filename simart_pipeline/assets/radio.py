@@ -8,6 +8,7 @@ import xarray as xr
 from simart_pipeline import provenance, stores
 from simart_pipeline.partitions import from_scene, scene_weather, split_key
 from simart_pipeline.radio import cirs as radio_cirs
+from simart_pipeline.radio.materials import weathers_sharing_materials
 from simart_pipeline.radio.pictures import traced_paths_markdown
 from simart_pipeline.resources import ProjectResource, RayTracerResource
 from simart_pipeline.scene import geometry
@@ -15,8 +16,10 @@ from simart_pipeline.scene.meshes import SceneMeshes
 
 
 def _same_content_store(project: ProjectResource, scene: str, weather: str, key: str):
-    """Another weather's CIR store of this scene with the same content hash, if one exists."""
-    for other in sorted(project.config(scene).weathers):
+    """Another weather's CIR store of this scene with the same radio materials (one policy with the
+    CKM maps: ``weathers_sharing_materials``) and the same content hash, if one exists."""
+    group = next(g for g in weathers_sharing_materials(project.config(scene).weathers).values() if weather in g)
+    for other in sorted(group):
         path = stores.store_path(project.data_root, "cirs", scene, other, suffix=".zarr")
         if other == weather or not path.exists():
             continue

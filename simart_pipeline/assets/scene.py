@@ -10,7 +10,7 @@ from simart_pipeline import previews, provenance
 from simart_pipeline.mobility.trajectory import build_trajectory, check_clear_of_buildings
 from simart_pipeline.partitions import scene_partitions
 from simart_pipeline.resources import ProjectResource
-from simart_pipeline.scene import build, geometry, meshes
+from simart_pipeline.scene import build, geometry, meshes, source
 
 
 @dg.asset(partitions_def=scene_partitions, code_version="2", group_name="scene")
@@ -18,7 +18,7 @@ def osm_extract(context: dg.AssetExecutionContext, project: ProjectResource) -> 
     """Source geometry in the local ENU frame: buildings and parts, roads, land cover, ground; heights, roofs, materials."""
     scene = context.partition_key
     cfg = project.config(scene)
-    geom = geometry.build_source_geometry(cfg, project.scene_dir(scene))
+    geom = source.build_source_geometry(cfg, project.scene_dir(scene))
     ds = geometry.to_dataset(geom)
     ds.attrs.update(provenance.attrs(cfg, "osm_extract", source_kind=cfg.source.kind))
     counts = {c: len(geom.of_class(c)) for c in geometry.FEATURE_CLASSES}

@@ -11,17 +11,13 @@ import xarray as xr
 from simart_pipeline import stores
 from simart_pipeline.ckm.grid import cell_centres
 from simart_pipeline.config import SceneConfig
-from simart_pipeline.radio.materials import WEATHER_MATERIALS
+from simart_pipeline.radio.materials import weathers_sharing_materials
 
 
 def map_groups(cfg: SceneConfig) -> dict[str, list[str]]:
     """Weathers with the same radio materials share one map, named after the first of them
-    (sunny and night: ``sunny``; rain: ``rainy``)."""
-    groups: dict[str, list[str]] = {}
-    for w in cfg.ckm.weathers or cfg.weathers:
-        key = next((g for g in groups if WEATHER_MATERIALS[g] == WEATHER_MATERIALS[w]), w)
-        groups.setdefault(key, []).append(w)
-    return groups
+    (:func:`~simart_pipeline.radio.materials.weathers_sharing_materials`)."""
+    return weathers_sharing_materials(cfg.ckm.weathers or cfg.weathers)
 
 
 def map_name_for_weather(cfg: SceneConfig, weather: str) -> str:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from simart_pipeline.sensing.inertial import STANDARD_GRAVITY_MPS2  # the IMU's: one gravity everywhere
+from simart_pipeline.vocabulary import STANDARD_GRAVITY_MPS2
 
 
 def _dot(a, b):

@@ -39,8 +39,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from simart_pipeline import clock
 from simart_pipeline.config import BAG_TIME_ORIGINS, recording_format
-from simart_pipeline.mobility.replay import ReplayError
+from simart_pipeline.mobility.errors import ReplayError
 
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 POSE_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
@@ -223,8 +224,8 @@ class TfTree:
         if t is None or len(t) == 1:
             return np.tile(quat[-1], (n, 1)), np.tile(xyz[-1], (n, 1))
         q = np.clip(t_ns, t[0], t[-1])
-        ts = (q - t[0]).astype(np.float64) / 1e9  # relative seconds keep ns resolution in float64
-        knots = (t - t[0]).astype(np.float64) / 1e9
+        ts = clock.ns_to_seconds(q - t[0])  # relative seconds keep ns resolution in float64
+        knots = clock.ns_to_seconds(t - t[0])
         pos = np.stack([np.interp(ts, knots, xyz[:, i]) for i in range(3)], axis=-1)
         rot = Slerp(knots, Rotation.from_quat(quat))(ts).as_quat()
         hit = np.searchsorted(t, q)

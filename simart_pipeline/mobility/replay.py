@@ -33,15 +33,14 @@ import xarray as xr
 from scipy.interpolate import CubicHermiteSpline, CubicSpline
 from scipy.spatial.transform import Rotation, Slerp
 
-from simart_pipeline import frames
+from simart_pipeline import clock, frames
+from simart_pipeline.config import recording_format
+from simart_pipeline.mobility import bags
+from simart_pipeline.mobility.errors import ReplayError
 
 POSITION = ("x_m", "y_m", "z_m")
 QUATERNION = ("qx", "qy", "qz", "qw")
 VELOCITY = ("vx_mps", "vy_mps", "vz_mps")
-
-
-class ReplayError(ValueError):
-    """A recorded trajectory that cannot be replayed; the message names the file."""
 
 
 def read_recording(trajectory, scene_dir: str | Path) -> dict[str, np.ndarray]:
@@ -49,14 +48,10 @@ def read_recording(trajectory, scene_dir: str | Path) -> dict[str, np.ndarray]:
 
     :returns: the layout of :func:`read_csv`; times are not yet offset (``resample`` does that).
     """
-    from simart_pipeline.config import recording_format
-
     path = Path(scene_dir) / trajectory.path
     if recording_format(trajectory.path) == "csv":
         rec = read_csv(path)
     else:
-        from simart_pipeline.mobility import bags
-
         rec = bags.read_bag_trajectory(path, trajectory.topic, stamp=trajectory.stamp or "header",
                                        time_origin=trajectory.time_origin,
                                        child_frame_id=trajectory.child_frame_id,
@@ -101,7 +96,7 @@ def read_csv(path: str | Path) -> dict[str, np.ndarray]:
         if "time_ns" in col:
             t_ns = np.array([int(v) for v in table[:, col["time_ns"]]], np.int64)
         else:
-            t_ns = np.round(table[:, col["time_s"]].astype(np.float64) * 1e9).astype(np.int64)
+            t_ns = np.array([clock.seconds_to_ns(v) for v in table[:, col["time_s"]]], np.int64)
 
         def block(names):
             return table[:, [col[c] for c in names]].astype(np.float64)
@@ -141,10 +136,10 @@ def write_csv(traj: xr.Dataset, platform: str, path: str | Path) -> None:
 
 def resample(rec: dict[str, np.ndarray], times_ns: np.ndarray, time_offset_s: float = 0.0) -> dict[str, np.ndarray]:
     """Poses at ``times_ns`` in the layout of ``trajectory.evaluate_waypoints``."""
-    t_rec_ns = rec["time_ns"] + int(round(time_offset_s * 1e9))
-    t_rec = t_rec_ns.astype(np.float64) / 1e9
+    t_rec_ns = rec["time_ns"] + clock.seconds_to_ns(time_offset_s)
+    t_rec = clock.ns_to_seconds(t_rec_ns)
     q_ns = np.asarray(times_ns, np.int64)
-    q = np.clip(q_ns.astype(np.float64) / 1e9, t_rec[0], t_rec[-1])
+    q = np.clip(clock.ns_to_seconds(q_ns), t_rec[0], t_rec[-1])
     moving = (q_ns >= t_rec_ns[0]) & (q_ns <= t_rec_ns[-1])
     pos_rec = rec["position_m"]
     vel_rec = rec.get("velocity_mps")

@@ -30,9 +30,8 @@ from scipy.spatial.transform import Rotation, Slerp
 from simart_pipeline import clock, frames
 from simart_pipeline.config import Platform, SceneConfig
 from simart_pipeline.mobility import dynamics, path, roads
+from simart_pipeline.vocabulary import AXES, QUATERNION_COMPONENTS
 
-AXES = ["x", "y", "z"]
-QUAT = ["x", "y", "z", "w"]
 POSE_KEYS = ("position_m", "velocity_mps", "acceleration_mps2", "orientation_xyzw", "angular_velocity_radps")
 CAR_MIN_ROAD_WIDTH_M = 3.0  # narrower centre lines are footways, cycleways and paths (osm_tags widths)
 
@@ -111,16 +110,15 @@ def evaluate_platform(platform: Platform, t_ns: np.ndarray, scene_dir: Path | No
 def build_trajectory(cfg: SceneConfig, scene_dir: str | Path | None = None, geom=None) -> xr.Dataset:
     """Sample every platform's trajectory at the pose rate of the shared clock.
 
-    :param geom: the scene's source geometry (``osm_extract``), for road following; built from the
-        config (and ``scene_dir`` for OSM and mesh sources) when a platform may need it.
+    :param scene_dir: the scene directory, for replayed recordings.
+    :param geom: the scene's source geometry (the ``osm_extract`` stage), needed when a platform may
+        follow roads; this stage never builds it itself.
     """
-    if geom is None and any(_may_follow_roads(p) for p in cfg.platforms):
-        if cfg.source.kind != "procedural" and scene_dir is None:
-            raise ValueError(f"scene {cfg.name}: its ground vehicles follow roads by default: pass the scene "
-                             "directory or its source geometry (or set follow_roads: false)")
-        from simart_pipeline.scene.geometry import build_source_geometry
-
-        geom = build_source_geometry(cfg, scene_dir)
+    if geom is None:
+        needs = [p.name for p in cfg.platforms if _may_follow_roads(p)]
+        if needs:
+            raise ValueError(f"scene {cfg.name}: platform(s) {', '.join(needs)} follow roads: pass the scene's "
+                             "source geometry (geom=, the osm_extract stage), or set follow_roads: false")
     t_ns = clock.sample_times_ns(cfg.clock.duration_s, cfg.clock.pose_rate_hz)
     plans = {p.name: plan_platform(p, geom) for p in cfg.platforms if p.trajectory.kind == "waypoints"}
     per = [evaluate_platform(p, t_ns, scene_dir, geom, plans.get(p.name)) for p in cfg.platforms]
@@ -141,7 +139,7 @@ def build_trajectory(cfg: SceneConfig, scene_dir: str | Path | None = None, geom
             "platform": names,
             "time": ("time", t_ns, {"units": "ns", "long_name": "simulated time since session start"}),
             "axis": AXES,
-            "quaternion": QUAT,
+            "quaternion": QUATERNION_COMPONENTS,
             "child_frame_id": ("platform", [frames.base_link(n) for n in names]),
         },
     )

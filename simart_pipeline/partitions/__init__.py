@@ -4,7 +4,8 @@ import warnings
 
 import dagster as dg
 
-from simart_pipeline.config import MAX_TILES_PER_AXIS, WEATHERS
+from simart_pipeline.config import MAX_TILES_PER_AXIS
+from simart_pipeline.vocabulary import WEATHERS
 from simart_pipeline.ckm.grid import tile_key
 
 scene_partitions = dg.DynamicPartitionsDefinition(name="scene")

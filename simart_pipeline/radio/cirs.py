@@ -22,8 +22,8 @@ from simart_pipeline.config import SceneConfig
 from simart_pipeline.mobility.trajectory import poses_at
 from simart_pipeline.radio.tracer import INVALID_DELAY_S, RX_NEAR_TX_M, RadioScene, TracedPaths
 from simart_pipeline.scene.geometry import SourceGeometry, inside_buildings
+from simart_pipeline.vocabulary import LinkStatus, interaction_flag_attrs, link_status_flag_attrs
 
-INTERACTION_FLAGS = {"none": 0, "specular": 1, "diffuse": 2, "refraction": 4, "diffraction": 8}
 FILL_NOTE = "where valid is false: {}"
 
 
@@ -114,7 +114,8 @@ def cir_dataset(radio: RadioScene, cfg: SceneConfig, lg: LinkGeometry, paths: Tr
     else:
         inside = np.zeros(near.shape, bool)
     usable = ~(no_path | near | inside)
-    status = (no_path * 1 | inside * 2 | near * 4).astype(np.uint8)
+    status = (no_path * LinkStatus.NO_PATH | inside * LinkStatus.RX_INSIDE_BUILDING
+              | near * LinkStatus.RX_NEAR_TX).astype(np.uint8)
 
     zero_fill = FILL_NOTE.format(0)
     angle = dict(units="rad", fill_where_invalid=zero_fill)
@@ -135,8 +136,7 @@ def cir_dataset(radio: RadioScene, cfg: SceneConfig, lg: LinkGeometry, paths: Tr
             units="Hz", long_name="Doppler shift from the devices' velocities", fill_where_invalid=zero_fill)),
         "interaction": (("time", "link", "depth", "path"), per_link(paths.interaction), dict(
             units="1", long_name="interaction type per bounce (0 after the last bounce)",
-            flag_values=np.array(list(INTERACTION_FLAGS.values()), np.uint8),
-            flag_meanings=" ".join(INTERACTION_FLAGS))),
+            **interaction_flag_attrs())),
         "valid": (d3, valid, dict(long_name="the path exists (every other per-path value is a fill "
                                   "where this is false)")),
         "los": (d3, per_link(paths.los), dict(long_name="valid line-of-sight path")),
@@ -151,8 +151,7 @@ def cir_dataset(radio: RadioScene, cfg: SceneConfig, lg: LinkGeometry, paths: Tr
             long_name="the link has paths and none of the flags above: KPIs use only these")),
         "link_status": (("time", "link"), status, dict(
             units="1", long_name="why a link is not usable (bit flags; 0: usable)",
-            flag_masks=np.array([1, 2, 4], np.uint8),
-            flag_meanings="no_path rx_inside_building rx_near_tx")),
+            **link_status_flag_attrs())),
         "tx_position_m": (("time", "link", "axis"), tx_pos_l,
                           dict(units="m", long_name="transmit array centre", frame_id="world")),
         "rx_position_m": (("time", "link", "axis"), rx_pos_l,

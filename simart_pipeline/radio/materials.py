@@ -73,6 +73,19 @@ WEATHER_MATERIALS: dict[str, dict[str, str]] = {
 }
 
 
+def weathers_sharing_materials(weathers) -> dict[str, list[str]]:
+    """The one reuse policy of radio work across weathers: weathers whose material swaps are equal
+    trace the same channels, so they share one CIR trace and one channel knowledge map, named after
+    the first of them in ``weathers`` order (sunny and night: ``sunny``; rain: ``rainy``)."""
+    groups: dict[str, list[str]] = {}
+    for w in weathers:
+        if w not in WEATHER_MATERIALS:
+            raise ValueError(f"unknown weather {w!r}; known: {', '.join(WEATHER_MATERIALS)}")
+        key = next((g for g in groups if WEATHER_MATERIALS[g] == WEATHER_MATERIALS[w]), w)
+        groups.setdefault(key, []).append(w)
+    return groups
+
+
 def weather_material(name: str, weather: str) -> str:
     """The radio material that ``name`` becomes in ``weather``."""
     if weather not in WEATHER_MATERIALS:

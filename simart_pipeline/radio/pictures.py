@@ -9,8 +9,12 @@ from simart_pipeline.config import SceneConfig
 from simart_pipeline.radio.cirs import LinkGeometry
 from simart_pipeline.radio.tracer import RadioScene
 from simart_pipeline.scene.geometry import SourceGeometry
+from simart_pipeline.vocabulary import InteractionKind
 
-_KIND_COLOUR = {0: "tab:green", 1: "tab:blue", 2: "tab:orange", 4: "tab:purple", 8: "tab:red"}
+# Colour of a path by its last interaction (NONE: the line of sight).
+_KIND_COLOUR = {InteractionKind.NONE: "tab:green", InteractionKind.SPECULAR: "tab:blue",
+                InteractionKind.DIFFUSE: "tab:orange", InteractionKind.REFRACTION: "tab:purple",
+                InteractionKind.DIFFRACTION: "tab:red"}
 
 
 def traced_paths_markdown(radio: RadioScene, cfg: SceneConfig, lg: LinkGeometry,
@@ -35,7 +39,7 @@ def traced_paths_markdown(radio: RadioScene, cfg: SceneConfig, lg: LinkGeometry,
             for k in np.flatnonzero(p.valid[r, t]):
                 depth = int(np.count_nonzero(p.interaction[r, t, :, k]))
                 pts = np.vstack([lg.tx_position_m[t], p.vertices_m[r, t, :depth, k], lg.rx_position_m[step, r]])
-                kind = int(p.interaction[r, t, depth - 1, k]) if depth else 0
+                kind = int(p.interaction[r, t, depth - 1, k]) if depth else InteractionKind.NONE
                 width = 0.4 + 2.0 * max(0.0, 1 + (gain_db[r, t, k] - g_max) / 40)
                 ax.plot(pts[:, 0], pts[:, 1], "-", color=_KIND_COLOUR.get(kind, "k"), lw=width, alpha=0.8)
             delays_ns = p.tau_s[r, t][p.valid[r, t]] * 1e9
@@ -51,8 +55,8 @@ def traced_paths_markdown(radio: RadioScene, cfg: SceneConfig, lg: LinkGeometry,
     for j, pl in enumerate(cfg.platforms):
         ax.plot(*lg.rx_position_m[step, j, :2], "ko", ms=6)
         ax.annotate(pl.name, lg.rx_position_m[step, j, :2])
-    for kind, name in ((0, "line of sight"), (1, "specular"), (2, "diffuse"), (4, "refraction"), (8, "diffraction")):
-        ax.plot([], [], color=_KIND_COLOUR[kind], label=name)
+    for kind, colour in _KIND_COLOUR.items():
+        ax.plot([], [], color=colour, label="line of sight" if kind == InteractionKind.NONE else kind.name.lower())
     ax.legend(loc="upper right", fontsize=7)
     ax.set_aspect("equal")
     ax.set_xlabel("east (m)")

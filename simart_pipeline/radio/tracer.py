@@ -20,8 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from simart_pipeline import engine
-from simart_pipeline.config import Array, SceneConfig
+from simart_pipeline.config import Array, Materials, RayTracing, SceneConfig
 from simart_pipeline.radio import materials
+from simart_pipeline.vocabulary import InteractionKind
 
 RX_NEAR_TX_M = 0.01  # Sionna RT silently drops the LoS path of a receiver this close to a transmitter
 INVALID_DELAY_S = -1.0
@@ -45,7 +46,7 @@ class TracedPaths:
 
     @property
     def los(self) -> np.ndarray:
-        return self.valid & np.all(self.interaction == 0, axis=-2)
+        return self.valid & np.all(self.interaction == InteractionKind.NONE, axis=-2)
 
 
 def sionna_array(array: Array):
@@ -57,38 +58,58 @@ def sionna_array(array: Array):
                           pattern=array.pattern, polarization=array.polarization)
 
 
-def receivers_per_call(cfg: SceneConfig, deterministic: bool = True) -> int:
+def receivers_per_call(solver: RayTracing, deterministic: bool = True) -> int:
     """Receivers per PathSolver call: the configured cap, lowered to fit the memory budget of the
     deterministic solver (the default solver's working set hardly grows with receivers)."""
-    rt_cfg = cfg.ray_tracing
     if not deterministic:
-        return rt_cfg.max_receivers_per_call
-    per_rx = SOLVER_BYTES_PER_SAMPLE_BOUNCE_RX * max(rt_cfg.max_depth, 1) * rt_cfg.samples_per_src
-    fit = int(rt_cfg.max_solver_memory_gib * 2**30 // per_rx)
-    return max(1, min(rt_cfg.max_receivers_per_call, fit))
+        return solver.max_receivers_per_call
+    per_rx = SOLVER_BYTES_PER_SAMPLE_BOUNCE_RX * max(solver.max_depth, 1) * solver.samples_per_src
+    fit = int(solver.max_solver_memory_gib * 2**30 // per_rx)
+    return max(1, min(solver.max_receivers_per_call, fit))
 
 
 class RadioScene:
-    """A Sionna RT scene loaded once, with the config's frequency, arrays and weather materials.
+    """A Sionna RT scene loaded once, with its frequency, arrays, solver settings and weather materials.
+
+    Built from explicit arguments (a notebook needs no scene config) or from a scene config with
+    :meth:`from_config`.
 
     :param scene_xml: the radio mesh (Mitsuba XML); None for an empty scene (free space).
+    :param frequency_hz: carrier frequency (Hz); ``bandwidth_hz``: the scene's bandwidth (Hz).
+    :param tx_array, rx_array: the arrays of every transmitter and every receiver (Sionna RT holds
+        one of each per scene).
+    :param solver: PathSolver settings (depth, samples, mechanisms, seed, memory budget).
     :param weather: rain swaps dry materials for wet ones (:mod:`simart_pipeline.radio.materials`).
+    :param material_thickness_m: thickness of the materials swapped in for the weather (m).
     """
 
-    def __init__(self, scene_xml: str | Path | None, cfg: SceneConfig, weather: str = "sunny"):
+    def __init__(self, scene_xml: str | Path | None, *, frequency_hz: float, bandwidth_hz: float,
+                 tx_array: Array, rx_array: Array, solver: RayTracing | None = None,
+                 weather: str = "sunny", material_thickness_m: float = Materials().thickness_m):
         engine.init()
         import sionna.rt as rt
 
-        self.cfg = cfg
+        self.frequency_hz = float(frequency_hz)
+        self.bandwidth_hz = float(bandwidth_hz)
+        self.tx_array_config, self.rx_array_config = tx_array, rx_array
+        self.solver_config = solver if solver is not None else RayTracing()
+        self.material_thickness_m = material_thickness_m
         self.weather = weather
         self.scene_xml = Path(scene_xml) if scene_xml else None
         self.scene = rt.load_scene(str(scene_xml), merge_shapes=False) if scene_xml else rt.load_scene()
-        self.scene.frequency = cfg.ofdm.carrier_frequency_hz
-        self.scene.bandwidth = cfg.ofdm.bandwidth_hz
-        self.scene.tx_array = sionna_array(cfg.base_stations[0].array)
-        self.scene.rx_array = sionna_array(cfg.platforms[0].array)
+        self.scene.frequency = frequency_hz
+        self.scene.bandwidth = bandwidth_hz
+        self.scene.tx_array = sionna_array(tx_array)
+        self.scene.rx_array = sionna_array(rx_array)
         self.material_overrides = self._apply_weather(weather)
         self.solvers = {True: rt.PathSolver(deterministic=True), False: rt.PathSolver(deterministic=False)}
+
+    @classmethod
+    def from_config(cls, scene_xml: str | Path | None, cfg: SceneConfig, weather: str = "sunny") -> "RadioScene":
+        """The radio scene of a scene config: its carrier, bandwidth, arrays, solver and materials."""
+        return cls(scene_xml, frequency_hz=cfg.ofdm.carrier_frequency_hz, bandwidth_hz=cfg.ofdm.bandwidth_hz,
+                   tx_array=cfg.base_stations[0].array, rx_array=cfg.platforms[0].array,
+                   solver=cfg.ray_tracing, weather=weather, material_thickness_m=cfg.materials.thickness_m)
 
     def _apply_weather(self, weather: str) -> dict[str, str]:
         swapped: dict[str, object] = {}
@@ -100,8 +121,7 @@ class RadioScene:
                 continue
             if target not in swapped:
                 swapped[target] = materials.sionna_material(
-                    target, self.cfg.ofdm.carrier_frequency_hz, self.cfg.materials.thickness_m,
-                    suffix=f"_{weather}")
+                    target, self.frequency_hz, self.material_thickness_m, suffix=f"_{weather}")
             obj.radio_material = swapped[target]
             applied[name] = f"{base} -> {target}"
         return applied
@@ -141,13 +161,12 @@ class RadioScene:
                 h.update(hashlib.sha256(f.read_bytes()).digest())
         import sionna.rt
 
-        cfg = self.cfg
         h.update(json.dumps({
             "materials": {k: [repr(x) for x in v] for k, v in self.material_properties().items()},
-            "frequency_hz": cfg.ofdm.carrier_frequency_hz, "bandwidth_hz": cfg.ofdm.bandwidth_hz,
-            "tx_array": cfg.base_stations[0].array.model_dump(),
-            "rx_array": cfg.platforms[0].array.model_dump(),
-            "solver": cfg.ray_tracing.model_dump(exclude={"max_receivers_per_call", "max_solver_memory_gib"}),
+            "frequency_hz": self.frequency_hz, "bandwidth_hz": self.bandwidth_hz,
+            "tx_array": self.tx_array_config.model_dump(),
+            "rx_array": self.rx_array_config.model_dump(),
+            "solver": self.solver_config.model_dump(exclude={"max_receivers_per_call", "max_solver_memory_gib"}),
             "sionna_rt": sionna.rt.__version__,
         }, sort_keys=True).encode())
         return h.hexdigest()
@@ -168,7 +187,7 @@ class RadioScene:
         """
         import sionna.rt as rt
 
-        rt_cfg = self.cfg.ray_tracing
+        rt_cfg = self.solver_config
         num_rx, num_tx = len(rx_positions), len(tx_positions)
         if num_rx == 0 or num_tx == 0:
             raise ValueError("nothing to trace: no receiver or no transmitter")
@@ -182,7 +201,7 @@ class RadioScene:
                 velocity=None if tx_velocities is None else vec(tx_velocities[i])))
         chunks = []
         try:
-            step = receivers_per_call(self.cfg, deterministic)
+            step = receivers_per_call(rt_cfg, deterministic)
             for start in range(0, num_rx, step):
                 idx = range(start, min(start + step, num_rx))
                 for i in idx:

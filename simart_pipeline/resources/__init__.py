@@ -47,7 +47,7 @@ class RayTracerResource(dg.ConfigurableResource):
         if key not in _LOADED:
             if len(_LOADED) >= 4:
                 _LOADED.pop(next(iter(_LOADED)))
-            _LOADED[key] = RadioScene(xml, cfg, weather)
+            _LOADED[key] = RadioScene.from_config(xml, cfg, weather)
         return _LOADED[key]
 
     def variant(self) -> str:

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
-from enum import IntEnum
 from pathlib import Path
 from xml.sax.saxutils import escape
 
@@ -31,24 +30,7 @@ from shapely.geometry import LineString, Polygon
 from simart_pipeline import stores
 from simart_pipeline.scene import extrude
 from simart_pipeline.scene.geometry import SourceGeometry, polygons_of
-
-
-class SemanticClass(IntEnum):
-    """Per-face semantic class of the visual mesh (and of camera segmentation images)."""
-
-    UNLABELED = 0
-    GROUND = 1
-    ROAD = 2
-    BUILDING = 3
-    VEGETATION = 4
-    WATER = 5
-    VEHICLE = 6
-
-
-def semantic_flag_attrs() -> dict:
-    """CF ``flag_values`` / ``flag_meanings`` of :class:`SemanticClass`, for every label variable."""
-    return {"flag_values": np.array([int(c) for c in SemanticClass], np.uint8),
-            "flag_meanings": " ".join(c.name.lower() for c in SemanticClass)}
+from simart_pipeline.vocabulary import SemanticClass, semantic_flag_attrs
 
 
 # Source feature class -> (semantic class, radio mesh class name)

@@ -33,7 +33,8 @@ from scipy.spatial.transform import Rotation
 from simart_pipeline import clock, frames
 from simart_pipeline.config import BaseStation, ImportedStream, SceneConfig, SensorImport
 from simart_pipeline.mobility.bags import Bag, BagError, frame_name, read_tf, stamp_ns, time_origin_ns
-from simart_pipeline.mobility.trajectory import AXES, QUAT
+from simart_pipeline.vocabulary import AXES
+from simart_pipeline.vocabulary import QUATERNION_COMPONENTS as QUAT
 from simart_pipeline.sensing import ros_messages as rm
 from simart_pipeline.sensing.streams import device_poses, render_sensor_frames
 

@@ -29,7 +29,9 @@ from scipy.spatial.transform import Rotation
 
 from simart_pipeline import clock, frames
 from simart_pipeline.config import BaseStation, Camera, Gps, Imu, Lidar, Platform, SceneConfig
-from simart_pipeline.mobility.trajectory import AXES, QUAT, poses_at
+from simart_pipeline.mobility.trajectory import poses_at
+from simart_pipeline.vocabulary import AXES
+from simart_pipeline.vocabulary import QUATERNION_COMPONENTS as QUAT
 from simart_pipeline.scene.meshes import SceneMeshes
 from simart_pipeline.sensing import camera, inertial, lidar, raycast
 from simart_pipeline.sensing.weather import weather_model

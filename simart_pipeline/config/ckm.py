@@ -1,0 +1,68 @@
+"""Channel knowledge map: the grid, its heights, region and tiles, and the solver mode."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, field_validator, model_validator
+
+from simart_pipeline.config.base import Vec2, _Model
+from simart_pipeline.vocabulary import WeatherName
+
+
+MAX_TILES_PER_AXIS = 4  # the static tile partitions are r0c0 .. r3c3 (partitions/__init__.py)
+
+
+class Ckm(_Model):
+    """Channel-knowledge-map grid: horizontal planes at one or more heights, split into tiles (the
+    tile partitions). Cells inside buildings or outside ``region_m`` are masked and never traced."""
+
+    center_m: Vec2 = (0.0, 0.0)
+    size_m: Vec2 = (100.0, 100.0)
+    cell_size_m: float = Field(5.0, gt=0)
+    height_m: float | None = Field(None, description="one receiver height (m); or use heights_m")
+    heights_m: tuple[float, ...] | None = Field(None, description="several heights: a 3D voxel map")
+    region_m: tuple[Vec2, ...] | None = Field(
+        None, description="polygon (ENU x, y vertices) of the region of interest; default the whole grid")
+    tiles: tuple[int, int] = Field((2, 2), description="tiles along x, along y")
+    mode: Literal["reference", "fast"] = Field(
+        "reference", description="reference: PathSolver at cell centres; fast: one shoot-and-bounce pass")
+    deterministic_solver: bool = Field(
+        False, description="reference mode: PathSolver(deterministic=True) instead of its default "
+        "candidate generator, which finds the same paths here at a fraction of the time and memory "
+        "per receiver (docs/ckm.md)")
+    num_rays: int = Field(10_000_000, ge=1_000, description="fast mode: rays per transmitter")
+    min_hits_for_spread: int = Field(10, ge=1, description="fast mode: fewer ray hits mask the spreads")
+    weathers: tuple[WeatherName, ...] | None = Field(
+        None, description="weathers whose radio materials get a map (default: the scene's); weathers "
+        "with equal materials share one map")
+
+    @field_validator("tiles")
+    @classmethod
+    def _tiles(cls, v):
+        if not (1 <= v[0] <= MAX_TILES_PER_AXIS and 1 <= v[1] <= MAX_TILES_PER_AXIS):
+            raise ValueError(f"tiles per axis must be within 1..{MAX_TILES_PER_AXIS}")
+        return v
+
+    @model_validator(mode="after")
+    def _heights(self):
+        if self.height_m is not None and self.heights_m is not None:
+            raise ValueError("give height_m or heights_m, not both")
+        if self.heights_m is not None and (not self.heights_m or len(set(self.heights_m)) != len(self.heights_m)):
+            raise ValueError("heights_m: at least one height, none repeated")
+        if self.region_m is not None and len(self.region_m) < 3:
+            raise ValueError("region_m: a polygon needs at least three vertices")
+        return self
+
+    @property
+    def heights(self) -> tuple[float, ...]:
+        """Receiver heights (m): ``heights_m``, else ``(height_m,)``, else 1.5 m."""
+        if self.heights_m is not None:
+            return tuple(self.heights_m)
+        return (1.5 if self.height_m is None else self.height_m,)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(rows along y, cols along x)."""
+        return (max(1, round(self.size_m[1] / self.cell_size_m)),
+                max(1, round(self.size_m[0] / self.cell_size_m)))

@@ -1,0 +1,155 @@
+"""The scene root: the shared clock, :class:`SceneConfig` and the loader of ``scene.yaml``."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import yaml
+from pydantic import Field, ValidationError, field_validator, model_validator
+
+from simart_pipeline.config.base import ConfigError, _Model, _rate_has_exact_clock
+from simart_pipeline.config.ckm import Ckm
+from simart_pipeline.config.devices import BaseStation, Platform
+from simart_pipeline.config.link import Codebook, Link, Receiver
+from simart_pipeline.config.radio import Materials, Ofdm, RayTracing
+from simart_pipeline.config.sensor_imports import SensorImport
+from simart_pipeline.config.source import Source, WorldOrigin
+from simart_pipeline.vocabulary import WEATHERS, WeatherName
+
+
+class Clock(_Model):
+    """The shared simulated clock: every stream samples it at its own rate from t = 0."""
+
+    duration_s: float = Field(gt=0, le=3600)
+    radio_rate_hz: float = 10.0
+    pose_rate_hz: float = 100.0
+    _rate = field_validator("radio_rate_hz", "pose_rate_hz")(
+        classmethod(lambda cls, v: _rate_has_exact_clock(v)))
+
+
+class SceneConfig(_Model):
+    name: str = Field(pattern=r"^[a-z0-9][a-z0-9_-]*$")
+    description: str = ""
+    source: Source
+    origin: WorldOrigin
+    materials: Materials = Materials()
+    base_stations: tuple[BaseStation, ...] = Field(min_length=1)
+    platforms: tuple[Platform, ...] = Field(min_length=1)
+    clock: Clock
+    ray_tracing: RayTracing = RayTracing()
+    ofdm: Ofdm = Ofdm()
+    receiver: Receiver = Receiver()
+    codebook: Codebook = Codebook()
+    link: Link = Link()
+    ckm: Ckm = Ckm()
+    weathers: tuple[WeatherName, ...] = WEATHERS
+    seed: int = Field(0, description="seed of every random draw (sensor noise, layouts)")
+    sensor_imports: tuple[SensorImport, ...] = Field(
+        (), description="recorded sensor streams imported from bags in place of the embedded renderer")
+
+    @model_validator(mode="after")
+    def _imports_match_devices(self):
+        devices = {d.name: d for d in (*self.base_stations, *self.platforms)}
+        seen = set()
+        for i, imp in enumerate(self.sensor_imports):
+            for j, st in enumerate(imp.streams):
+                where = f"sensor_imports.{i}.streams.{j}"
+                if st.device not in devices:
+                    raise ValueError(f"{where}.device: no platform or base station named {st.device!r}; "
+                                     f"known: {', '.join(devices)}")
+                if (st.device, st.sensor) in seen:
+                    raise ValueError(f"{where}: {st.device}/{st.sensor} is imported twice")
+                seen.add((st.device, st.sensor))
+                same = [s for s in devices[st.device].sensors if s.name == st.sensor]
+                if same and same[0].kind != st.kind:
+                    raise ValueError(f"{where}.kind: {st.kind!r} cannot replace {st.device}/{st.sensor}, "
+                                     f"a {same[0].kind}")
+        return self
+
+    @model_validator(mode="after")
+    def _unique_names(self):
+        names = [d.name for d in (*self.base_stations, *self.platforms)]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"device names must be unique; repeated: {', '.join(dup)}")
+        for dev in (*self.base_stations, *self.platforms):
+            sn = [s.name for s in dev.sensors]
+            dup = sorted({n for n in sn if sn.count(n) > 1})
+            if dup:
+                raise ValueError(f"{dev.name}: sensor names must be unique; repeated: {', '.join(dup)}")
+        # Sionna RT holds one transmit and one receive array per scene.
+        for group, devs in (("base_stations", self.base_stations), ("platforms", self.platforms)):
+            if len({d.array for d in devs}) > 1:
+                raise ValueError(f"{group}: every device must use the same array (Sionna RT holds "
+                                 "one array per scene for transmitters and one for receivers)")
+        if len(set(self.weathers)) != len(self.weathers):
+            raise ValueError("weathers: listed twice")
+        return self
+
+    def digest(self) -> str:
+        """SHA-256 of the canonical JSON form: the config hash in every store's provenance."""
+        blob = json.dumps(self.model_dump(mode="json"), sort_keys=True).encode()
+        return hashlib.sha256(blob).hexdigest()
+
+
+def _loc(loc: tuple) -> str:
+    # Drop pydantic's union tags (e.g. 'procedural', 'camera') from the key path.
+    parts = [str(p) for p in loc if not (isinstance(p, str) and p in _UNION_TAGS)]
+    return ".".join(parts) or "(top level)"
+
+
+_UNION_TAGS = {"procedural", "osm", "mesh", "camera", "lidar", "imu", "gps", "waypoints", "replay"}
+
+
+def load_scene_config(scene_dir: str | Path) -> SceneConfig:
+    """Read and validate ``scene_dir/scene.yaml``; raise :class:`ConfigError` listing every problem."""
+    scene_dir = Path(scene_dir)
+    path = scene_dir / "scene.yaml"
+    if not path.is_file():
+        raise ConfigError([f"{path}: no scene.yaml in {scene_dir}"])
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ConfigError([f"{path}: not valid YAML: {exc}"]) from None
+    if not isinstance(raw, dict):
+        raise ConfigError([f"{path}: (top level): expected a mapping of keys, got {type(raw).__name__}"])
+    try:
+        cfg = SceneConfig.model_validate(raw)
+    except ValidationError as exc:
+        errors = exc.errors()
+        # A list whose only item failed also reports itself "too short": noise, not a problem.
+        errors = [e for e in errors if not (e["type"] == "too_short" and any(
+            len(o["loc"]) > len(e["loc"]) and o["loc"][:len(e["loc"])] == e["loc"] for o in errors))]
+        raise ConfigError([f"{path}: {_loc(e['loc'])}: {e['msg']}" for e in errors]) from None
+    problems = []
+    if cfg.name != scene_dir.resolve().name:
+        problems.append(f"{path}: name: {cfg.name!r} differs from the scene directory's name "
+                        f"{scene_dir.resolve().name!r}")
+    for i, p in enumerate(cfg.platforms):
+        if p.trajectory.kind == "replay":
+            rec = (scene_dir / p.trajectory.path).resolve()
+            if not rec.is_relative_to(scene_dir.resolve()):
+                problems.append(f"{path}: platforms.{i}.trajectory.path: {p.trajectory.path!r} points "
+                                "outside the scene directory")
+            elif not (rec.is_file() or (rec / "metadata.yaml").is_file()):
+                problems.append(f"{path}: platforms.{i}.trajectory.path: file not found: {rec}"
+                                + (" (a rosbag2 directory needs its metadata.yaml)" if rec.is_dir() else ""))
+    for i, imp in enumerate(cfg.sensor_imports):
+        bag = (scene_dir / imp.path).resolve()
+        if not bag.is_relative_to(scene_dir.resolve()):
+            problems.append(f"{path}: sensor_imports.{i}.path: {imp.path!r} points outside the scene directory")
+        elif not (bag.is_file() or (bag / "metadata.yaml").is_file()):
+            problems.append(f"{path}: sensor_imports.{i}.path: bag not found: {bag}")
+    if cfg.source.kind in ("osm", "mesh"):
+        src = resolve_source_path(scene_dir, cfg)
+        if not src.is_file():
+            problems.append(f"{path}: source.path: file not found: {src}")
+    if problems:
+        raise ConfigError(problems)
+    return cfg
+
+
+def resolve_source_path(scene_dir: Path, cfg: SceneConfig) -> Path:
+    return (Path(scene_dir) / cfg.source.path).resolve()

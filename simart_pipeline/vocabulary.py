@@ -1,0 +1,87 @@
+"""The ground floor: names and constants every layer shares. It imports nothing of the project.
+
+- weathers: the static weather partitions;
+- semantic classes of the visual mesh, camera images and LiDAR returns, with their CF flag attrs;
+- interaction kinds of a ray-traced path (Sionna RT's ``InteractionType`` values), with flag attrs;
+- the names of the axis and quaternion components of every stored vector and rotation;
+- physical constants, each with its source.
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum, IntFlag
+from typing import Literal
+
+import numpy as np
+import scipy.constants
+
+# --- weathers -------------------------------------------------------------------------------------
+WEATHERS: tuple[str, ...] = ("sunny", "rainy", "night")
+WeatherName = Literal["sunny", "rainy", "night"]  # the schema's type of a weather name
+
+
+# --- semantic classes -----------------------------------------------------------------------------
+class SemanticClass(IntEnum):
+    """Per-face semantic class of the visual mesh (and of camera segmentation images)."""
+
+    UNLABELED = 0
+    GROUND = 1
+    ROAD = 2
+    BUILDING = 3
+    VEGETATION = 4
+    WATER = 5
+    VEHICLE = 6
+
+
+SEMANTIC_CLASS_NAMES: tuple[str, ...] = tuple(c.name.lower() for c in SemanticClass)
+
+
+def semantic_flag_attrs() -> dict:
+    """CF ``flag_values`` / ``flag_meanings`` of :class:`SemanticClass`, for every label variable."""
+    return {"flag_values": np.array([int(c) for c in SemanticClass], np.uint8),
+            "flag_meanings": " ".join(SEMANTIC_CLASS_NAMES)}
+
+
+# --- interaction kinds ----------------------------------------------------------------------------
+class InteractionKind(IntEnum):
+    """What happens to a path at one bounce: Sionna RT 2's ``InteractionType`` values, bit flags
+    (``NONE`` after a path's last bounce; a path with only ``NONE`` is the line of sight)."""
+
+    NONE = 0
+    SPECULAR = 1
+    DIFFUSE = 2
+    REFRACTION = 4
+    DIFFRACTION = 8
+
+
+def interaction_flag_attrs() -> dict:
+    """CF ``flag_values`` / ``flag_meanings`` of :class:`InteractionKind`."""
+    return {"flag_values": np.array([int(k) for k in InteractionKind], np.uint8),
+            "flag_meanings": " ".join(k.name.lower() for k in InteractionKind)}
+
+
+class LinkStatus(IntFlag):
+    """Why a radio link (base station -> platform, one instant) is not usable; 0: usable."""
+
+    NO_PATH = 1
+    RX_INSIDE_BUILDING = 2
+    RX_NEAR_TX = 4
+
+
+def link_status_flag_attrs() -> dict:
+    """CF ``flag_masks`` / ``flag_meanings`` of :class:`LinkStatus`."""
+    return {"flag_masks": np.array([int(f) for f in LinkStatus], np.uint8),
+            "flag_meanings": " ".join(f.name.lower() for f in LinkStatus)}
+
+
+# --- axes and quaternions -------------------------------------------------------------------------
+AXES = ["x", "y", "z"]                 # components of every stored vector (dim ``axis``)
+QUATERNION_COMPONENTS = ["x", "y", "z", "w"]  # scalar last, as ROS geometry_msgs/Quaternion
+QUATERNION_ORDER = " ".join(QUATERNION_COMPONENTS)
+
+# --- physical constants ---------------------------------------------------------------------------
+# Standard acceleration of gravity g_n: 3rd CGPM (1901), ISO 80000-3; the project has no gravity model.
+STANDARD_GRAVITY_MPS2 = 9.80665
+# Exact in the SI since 2019 (CODATA, via scipy.constants).
+SPEED_OF_LIGHT_MPS = scipy.constants.speed_of_light
+BOLTZMANN_J_PER_K = scipy.constants.Boltzmann
