@@ -1,18 +1,21 @@
 """Link-level CKM layers per cell: serving base station, SINR with interference, MCS, BLER, rate.
 
 Per cell, independently of every other cell (no link-adaptation state carries over), with the
-same models as the ``kpis`` stage (docs/link-level.md):
+link budget of the ``kpis`` stage (:mod:`simart_pipeline.link.budget`, docs/link-level.md):
 
 - each base station splits its transmit power over the allocated subcarriers; noise per resource
   element is thermal over one subcarrier spacing with the receiver's noise figure;
 - each base station's best beam maximises its incoherent beam gain at the cell (which also
   maximises the SINR, since the interference does not depend on the serving station's beam); the
-  serving station has the highest best-beam received power;
+  serving station is, among those that reach the cell, the one whose best beam gives the highest
+  SINR (ties: lowest index), the ``kpis`` stage's rule (:func:`.budget.serving_station`);
 - interference: every other station transmits on the same resource elements with a beam drawn
   uniformly from its codebook; the layer uses the expected power (mean over its beams);
 - the map's gains are incoherent (wideband), so the SINR is flat over the subcarriers and the EESM
   effective SINR of a flat SINR equals it; MCS: the inner loop for the BLER target (no outer loop:
   a map has no transmission history); rate = TBS x (1 - TBLER) / slot; Shannon rate = B log2(1 + SINR).
+- masked cells (not traced: inside a building, outside the region) have NaN rates; a traced cell
+  that no station reaches is not served: rates 0, SINRs/BLER NaN, ``best_bs``/MCS/TBS -1.
 """
 
 from __future__ import annotations
@@ -22,8 +25,8 @@ import xarray as xr
 
 from simart_pipeline.config import SceneConfig
 from simart_pipeline.link.budget import (allocation, inner_loop, power_db, power_per_re_w, rates,
-                                         serving_station, sinr_per_re, station_sinr)
-from simart_pipeline.link.budget import SERVING_RULE
+                                         serving_station, sinr_per_re, station_sinr,
+                                         SERVING_RULE)
 
 MASKED = "cell masked: inside a building or outside the region (not traced)"
 NOT_SERVED = "no base station reaches the cell (not served), or the cell is masked"

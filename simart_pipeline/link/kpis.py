@@ -4,7 +4,9 @@ Pipeline per radio-clock instant (each instant is treated as one scheduled slot)
 CIRs -> CFR on the allocated subcarriers (:mod:`.ofdm`) -> beams (:mod:`.beams`) -> serving base
 station, best beam and SINR per resource element with interference (:mod:`.sinr`) -> EESM, BLER,
 TBS, TBLER (:mod:`.phy_abstraction`) -> MCS for a TBLER target (:mod:`.link_adaptation`) ->
-rates from the MCS and from Shannon. Every KPI's definition, unit and reference:
+rates from the MCS and from Shannon; the link budget (dB, serving station, inner loop, TBS,
+rates, what "not served" means) is :mod:`.budget`, shared with the CKM's link layers. Every KPI's
+definition, unit and reference:
 ``docs/link-level.md``; each variable's attrs carry ``units``, ``long_name`` and ``definition``.
 
 Masking: a link without a valid path, or whose receiver is inside a building or within 1 cm of
