@@ -26,6 +26,7 @@ from scipy.constants import speed_of_light
 from simart_pipeline.ckm import moments as mom
 from simart_pipeline.ckm.grid import cell_centres, outside_region, tile_slices
 from simart_pipeline.config import SceneConfig
+from simart_pipeline.link.budget import power_db
 from simart_pipeline.scene.geometry import SourceGeometry, inside_buildings
 
 MASKED = "cell masked (inside a building or outside the region), or nothing reached it"
@@ -172,8 +173,7 @@ def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_
             v[:, ~traced] = np.inf if f == "min_delay_s" else 0
     layers = mom.layers_from_moments(m, cfg.ckm.min_hits_for_spread if cfg.ckm.mode == "fast" else 1)
     has = layers["has_path"]
-    coh_ok = has & (coherent > 0)
-    layers["path_gain_coherent_db"] = np.where(coh_ok, 10 * np.log10(np.where(coh_ok, coherent, 1.0)), np.nan)
+    layers["path_gain_coherent_db"] = np.where(has, power_db(coherent), np.nan)
     power_dbm = np.array([b.power_dbm for b in cfg.base_stations])[:, None, None, None]
     layers["rx_power_dbm"] = power_dbm + layers["path_gain_db"]
     ds = layers_dataset(layers, cfg, grid, B)

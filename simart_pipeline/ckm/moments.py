@@ -27,6 +27,8 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from simart_pipeline.link.budget import power_db
+
 ANGLES = ("azimuth_arrival", "zenith_arrival", "azimuth_departure", "zenith_departure")
 SPREAD_NAMES = {"azimuth_arrival": "asa_deg", "zenith_arrival": "zsa_deg",
                 "azimuth_departure": "asd_deg", "zenith_departure": "zsd_deg"}
@@ -106,7 +108,7 @@ def layers_from_moments(m: CellMoments, min_count_for_spread: int = 1) -> dict[s
     has = m.power > 0
     g = np.where(has, m.power, 1.0)
     out: dict[str, np.ndarray] = {"has_path": has, "count": m.count}
-    out["path_gain_db"] = np.where(has, 10 * np.log10(g), np.nan)
+    out["path_gain_db"] = power_db(m.power)
     out["path_loss_db"] = -out["path_gain_db"]
     out["los_power_fraction"] = np.where(has, m.los_power / g, np.nan)
     out["los"] = has & (m.los_power / g > 0.5)
@@ -123,13 +125,11 @@ def layers_from_moments(m: CellMoments, min_count_for_spread: int = 1) -> dict[s
         out[MEAN_ANGLE_NAMES[name]] = np.where(stable, np.degrees(np.arctan2(s, c)), np.nan)
     if m.beam_power is not None:
         bp = m.beam_power
-        anyb = has[..., None] & (bp > 0)
-        out["beam_gain_db"] = np.where(anyb, 10 * np.log10(np.where(anyb, bp, 1.0)), np.nan)
+        out["beam_gain_db"] = np.where(has[..., None], power_db(bp), np.nan)
         best = np.argmax(bp, axis=-1)
         out["best_beam"] = np.where(has, best, -1).astype(np.int32)
         best_gain = np.take_along_axis(bp, best[..., None], axis=-1)[..., 0]
-        out["best_beam_gain_db"] = np.where(has & (best_gain > 0),
-                                            10 * np.log10(np.where(best_gain > 0, best_gain, 1.0)), np.nan)
+        out["best_beam_gain_db"] = np.where(has, power_db(best_gain), np.nan)
     return out
 
 

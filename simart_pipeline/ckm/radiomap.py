@@ -15,6 +15,7 @@ import numpy as np
 
 from simart_pipeline.ckm.grid import cell_centres
 from simart_pipeline.config import SceneConfig
+from simart_pipeline.link.budget import power_db
 
 
 def radio_map_path_gain_db(radio, cfg: SceneConfig, height_m: float, samples_per_tx: int = 10**6) -> np.ndarray:
@@ -53,4 +54,4 @@ def radio_map_path_gain_db(radio, cfg: SceneConfig, height_m: float, samples_per
                                                    and np.allclose(centres[0, :, 0], x, atol=1e-3)):
         raise AssertionError(f"RadioMapSolver's grid {gain.shape[1:]} does not match the CKM grid "
                              f"{(len(y), len(x))}")
-    return np.where(gain > 0, 10 * np.log10(np.where(gain > 0, gain, 1.0)), np.nan)
+    return power_db(gain)

@@ -4,7 +4,9 @@ Pipeline per radio-clock instant (each instant is treated as one scheduled slot)
 CIRs -> CFR on the allocated subcarriers (:mod:`.ofdm`) -> beams (:mod:`.beams`) -> serving base
 station, best beam and SINR per resource element with interference (:mod:`.sinr`) -> EESM, BLER,
 TBS, TBLER (:mod:`.phy_abstraction`) -> MCS for a TBLER target (:mod:`.link_adaptation`) ->
-rates from the MCS and from Shannon. Every KPI's definition, unit and reference:
+rates from the MCS and from Shannon; the link budget (dB, serving station, inner loop, TBS,
+rates, what "not served" means) is :mod:`.budget`, shared with the CKM's link layers. Every KPI's
+definition, unit and reference:
 ``docs/link-level.md``; each variable's attrs carry ``units``, ``long_name`` and ``definition``.
 
 Masking: a link without a valid path, or whose receiver is inside a building or within 1 cm of
@@ -21,32 +23,19 @@ from scipy.constants import speed_of_light
 
 from simart_pipeline.config import SceneConfig
 from simart_pipeline.link.beams import dft_codebook
+from simart_pipeline.link.budget import (CATEGORY, SERVING_RULE, allocation, dbm_to_w, inner_loop,
+                                         power_db, power_per_re_w, rates, sinr_per_re, w_to_dbm)
 from simart_pipeline.link.kpi_definitions import (DEFINITIONS, NAN_INTERFERENCE, NAN_LINK, NAN_RATE,
                                                   NAN_RX, REFERENCES)
-from simart_pipeline.link.link_adaptation import select_mcs_inner_loop, select_mcs_outer_loop
-from simart_pipeline.link.ofdm import (allocated_resource_blocks, allocated_subcarriers,
-                                       slot_duration_s, subcarrier_offsets_hz,
-                                       thermal_noise_power_w)
-from simart_pipeline.link.phy_abstraction import PhyAbstraction
+from simart_pipeline.link.link_adaptation import select_mcs_outer_loop
+from simart_pipeline.link.ofdm import subcarrier_offsets_hz
 from simart_pipeline.link.sinr import INTERFERENCE_RULE, chunk_steps, sinr_chunk
-from simart_pipeline.link.tbs import num_re_for_tbs
 
 DEFAULT_MAX_CHUNK_BYTES = 256 * 2**20   # working set of one time chunk
 HARQ_STREAM = 0x4B5049                  # seed stream of the HARQ draws, next to cfg.seed
-CATEGORY = "pdsch"                      # the links are downlink: base station -> platform
 LINK_FLAGS = ("link_no_path", "link_rx_inside_building", "link_rx_near_tx")
 
-
-def dbm_to_w(power_dbm) -> np.ndarray:
-    """Power in dBm to W (float64, broadcasts)."""
-    return 10.0 ** ((np.asarray(power_dbm, dtype=np.float64) - 30.0) / 10.0)
-
-
-def _db(x) -> np.ndarray:
-    """10 log10(x) where x > 0, NaN elsewhere (never -inf)."""
-    x = np.asarray(x, dtype=np.float64)
-    with np.errstate(invalid="ignore"):
-        return np.where(x > 0, 10.0 * np.log10(np.where(x > 0, x, 1.0)), np.nan)
+__all__ = ["CATEGORY", "check_cirs", "compute_kpis", "dbm_to_w"]
 
 
 def _var(dims, data, units, long_name, definition=None, **attrs):
@@ -146,10 +135,9 @@ def compute_kpis(cirs: xr.Dataset, cfg: SceneConfig, codebook_weights=None, sour
             float(cirs.attrs["carrier_frequency_hz"]), fc_hz, rtol=1e-9):
         raise ValueError(f"{source}: carrier {cirs.attrs['carrier_frequency_hz']} Hz differs "
                          f"from the config's ofdm.carrier_frequency_hz {fc_hz} Hz")
-    first_rb, num_rb = allocated_resource_blocks(ofdm, link)
-    sc = allocated_subcarriers(ofdm, link)
+    alloc = allocation(ofdm, link, rxcfg)
+    first_rb, num_rb, sc, K = alloc.first_rb, alloc.num_rb, alloc.subcarriers, alloc.num_subcarriers
     offsets_hz = subcarrier_offsets_hz(ofdm)[sc]
-    K = sc.size
     weights, beam_coords, codebook_desc = _codebook(cirs, cfg, fc_hz, codebook_weights)
     B = weights.shape[0]
 
@@ -158,9 +146,8 @@ def compute_kpis(cirs: xr.Dataset, cfg: SceneConfig, codebook_weights=None, sour
     platforms = list(dict.fromkeys(rx_link_names))
     rx_of_link = np.array([platforms.index(r) for r in rx_link_names], dtype=np.int64)
     T, L, R = cirs.sizes["time"], cirs.sizes["link"], len(platforms)
-    p_re_w = dbm_to_w(cirs["tx_power_dbm"].transpose("link").values) / K   # W per RE
-    noise_w = float(thermal_noise_power_w(ofdm.subcarrier_spacing_hz, rxcfg.temperature_k,
-                                          rxcfg.noise_figure_db))
+    p_re_w = power_per_re_w(cirs["tx_power_dbm"].transpose("link").values, K)   # W per RE
+    noise_w = alloc.noise_w
 
     flags = {f: cirs[f].transpose("time", "link").values.astype(bool) for f in LINK_FLAGS}
     has_path = ~flags["link_no_path"]
@@ -189,12 +176,10 @@ def compute_kpis(cirs: xr.Dataset, cfg: SceneConfig, codebook_weights=None, sour
     served, serving = out["served"], out["serving"]
     serving_beam = np.take_along_axis(out["best"], serving, axis=1)
     signal_w, interference_w = out["signal_w"], out["interference_w"]
-    sinr = signal_w / (interference_w + noise_w)                          # [T, R, K]
+    sinr = sinr_per_re(signal_w, interference_w, noise_w)                 # [T, R, K]
 
     # PHY abstraction and link adaptation on the served receivers' per-RE SINR.
-    n_re = int(num_re_for_tbs(num_rb, ofdm.num_ofdm_symbols, link.dmrs_re_per_prb,
-                              link.overhead_re_per_prb))
-    phy = PhyAbstraction(n_re, link.mcs_table, CATEGORY)
+    n_re, phy = alloc.num_re, alloc.phy
     uniform = np.random.default_rng((cfg.seed, HARQ_STREAM)).random((T, R))
     mcs = np.full((T, R), -1, np.int64)
     eff, bler, tbler = (np.full((T, R), np.nan) for _ in range(3))
@@ -207,10 +192,8 @@ def compute_kpis(cirs: xr.Dataset, cfg: SceneConfig, codebook_weights=None, sour
         per_step = max(1, max_chunk_bytes // (8 * 4 * max(R, 1) * phy.num_mcs * K))
         for t0 in range(0, T, per_step):
             sl = slice(t0, t0 + per_step)
-            m, e, b, tb = select_mcs_inner_loop(phy, sinr[sl], link.bler_target)
-            s = served[sl]
-            mcs[sl] = np.where(s, m, -1)
-            eff[sl], bler[sl], tbler[sl] = (np.where(s, v, np.nan) for v in (e, b, tb))
+            mcs[sl], eff[sl], bler[sl], tbler[sl] = inner_loop(phy, sinr[sl], served[sl],
+                                                               link.bler_target)
         ack = served & (uniform >= tbler)
     tb = phy.transport_block
     mcs_safe = np.maximum(mcs, 0)
@@ -218,14 +201,9 @@ def compute_kpis(cirs: xr.Dataset, cfg: SceneConfig, codebook_weights=None, sour
     def per_mcs(values):   # a per-MCS value at each receiver's MCS, -1 where not served
         return np.where(served, np.asarray(values)[mcs_safe], -1)
 
-    slot_s = slot_duration_s(ofdm)
-    band_hz = K * ofdm.subcarrier_spacing_hz
-    tbs_bits = per_mcs(tb.tbs_bits)
-    mcs_rate = np.where(served, tbs_bits * (1.0 - np.nan_to_num(tbler)) / slot_s, 0.0)
-    with np.errstate(invalid="ignore"):
-        shannon_se = np.where(served, np.mean(np.log1p(sinr), axis=-1) / np.log(2.0), 0.0)
-    mcs_rate = np.where(rx_masked, np.nan, mcs_rate)
-    shannon_se = np.where(rx_masked, np.nan, shannon_se)
+    slot_s, band_hz = alloc.slot_s, alloc.bandwidth_hz
+    rate = rates(phy, mcs, tbler, sinr, served, rx_masked, slot_s, band_hz)
+    tbs_bits, mcs_rate = rate["tbs_bits"], rate["mcs_rate_bps"]
     serving_tx = np.where(served, tx_of_link[serving], "")
 
     gain, beam_sinr, best = out["gain"], out["beam_sinr"], out["best"]
@@ -240,22 +218,22 @@ def compute_kpis(cirs: xr.Dataset, cfg: SceneConfig, codebook_weights=None, sour
         link_kpis_valid=xr.Variable(TL, link_ok, dict(
             long_name="link has a path and its receiver is neither inside a building nor "
                       "within 1 cm of the transmitter: per-link KPIs are valid")),
-        beam_gain_db=_var(TL + ("beam",), np.where(lm, _db(gain), np.nan), "dB",
+        beam_gain_db=_var(TL + ("beam",), np.where(lm, power_db(gain), np.nan), "dB",
                           "wideband beam gain", "mean over allocated subcarriers k of "
                           "sum_r |sum_n w_b,n H_r,n[k]|^2 (MRC over receive antennas)",
                           nan_means=NAN_LINK),
-        beam_sinr_db=_var(TL + ("beam",), np.where(lm, _db(beam_sinr), np.nan), "dB",
+        beam_sinr_db=_var(TL + ("beam",), np.where(lm, power_db(beam_sinr), np.nan), "dB",
                           "wideband SINR if this link served with this beam",
                           "sum_k S[k] / sum_k (I[k] + N), interference per interference_rule",
                           nan_means=NAN_LINK),
         best_beam=_var(TL, np.where(link_ok, best, -1), "1",
                        "beam that maximises the link's wideband SINR (ties: lowest index); "
                        "-1 where link_kpis_valid is false", valid_where="link_kpis_valid"),
-        best_beam_gain_db=_var(TL, np.where(link_ok, _db(best_gain), np.nan), "dB",
+        best_beam_gain_db=_var(TL, np.where(link_ok, power_db(best_gain), np.nan), "dB",
                                "wideband gain of the best beam", nan_means=NAN_LINK),
-        best_beam_sinr_db=_var(TL, np.where(link_ok, _db(best_sinr), np.nan), "dB",
+        best_beam_sinr_db=_var(TL, np.where(link_ok, power_db(best_sinr), np.nan), "dB",
                                "wideband SINR of the best beam", nan_means=NAN_LINK),
-        rx_power_per_re_dbm=_var(TL, np.where(link_ok, _db(p_re_w * best_gain * 1e3), np.nan),
+        rx_power_per_re_dbm=_var(TL, np.where(link_ok, w_to_dbm(p_re_w * best_gain), np.nan),
                                  "dBm", "received power per resource element with the best beam "
                                  "(RSRP-like)", "p_tx / K times the best beam's wideband gain",
                                  nan_means=NAN_LINK),
@@ -275,24 +253,26 @@ def compute_kpis(cirs: xr.Dataset, cfg: SceneConfig, codebook_weights=None, sour
         serving_beam=_var(TR, np.where(served, serving_beam, -1), "1",
                           "beam of the serving base station; -1 where not served",
                           valid_where="rx_served"),
-        signal_power_per_re_dbm=_var(TR, np.where(served, _db(signal_w.mean(-1) * 1e3), np.nan),
+        signal_power_per_re_dbm=_var(TR, np.where(served, w_to_dbm(signal_w.mean(-1)), np.nan),
                                      "dBm", "received signal power per resource element after "
                                      "MRC, mean over allocated subcarriers", nan_means=NAN_RX),
         interference_power_per_re_dbm=_var(
-            TR, np.where(served, _db(interference_w.mean(-1) * 1e3), np.nan), "dBm",
+            TR, np.where(served, w_to_dbm(interference_w.mean(-1)), np.nan), "dBm",
             "expected interference power per resource element after MRC, mean over allocated "
             "subcarriers", nan_means=NAN_INTERFERENCE),
-        sinr_per_subcarrier_db=_var(TRK, np.where(s3, _db(sinr), np.nan), "dB",
+        sinr_per_subcarrier_db=_var(TRK, np.where(s3, power_db(sinr), np.nan), "dB",
                                     "SINR per resource element of the allocated subcarriers",
                                     "S[k] / (I[k] + N) of the serving link and beam",
                                     nan_means=NAN_RX),
-        sinr_db=_var(TR, np.where(served, _db(signal_w.sum(-1) / (interference_w + noise_w)
-                                              .sum(-1)), np.nan), "dB", "wideband SINR",
+        sinr_db=_var(TR, np.where(served, power_db(signal_w.sum(-1)
+                                                   / (interference_w + noise_w).sum(-1)), np.nan),
+                     "dB", "wideband SINR",
                      "sum_k S[k] / sum_k (I[k] + N)", nan_means=NAN_RX),
-        snr_db=_var(TR, np.where(served, _db(signal_w.sum(-1) / (K * noise_w)), np.nan), "dB",
+        snr_db=_var(TR, np.where(served, power_db(signal_w.sum(-1) / (K * noise_w)), np.nan),
+                    "dB",
                     "wideband SNR of the serving link and beam (no interference)",
                     "sum_k S[k] / (K N)", nan_means=NAN_RX),
-        effective_sinr_db=_var(TR, _db(eff), "dB", "EESM effective SINR at the selected MCS",
+        effective_sinr_db=_var(TR, power_db(eff), "dB", "EESM effective SINR at the selected MCS",
                                "-beta_m ln(mean_k exp(-SINR[k] / beta_m)), log-sum-exp",
                                nan_means=NAN_RX),
         mcs_index=_var(TR, mcs, "1", f"MCS index I_MCS of TS 38.214 Table 5.1.3.1-"
@@ -328,11 +308,11 @@ def compute_kpis(cirs: xr.Dataset, cfg: SceneConfig, codebook_weights=None, sour
                                            "spectral efficiency of the selected MCS",
                                            "mcs_rate_bps / allocated bandwidth",
                                            nan_means=NAN_RATE),
-        shannon_spectral_efficiency_bpshz=_var(TR, shannon_se, "bit s-1 Hz-1",
-                                               "Shannon spectral efficiency",
+        shannon_spectral_efficiency_bpshz=_var(TR, rate["shannon_spectral_efficiency_bpshz"],
+                                               "bit s-1 Hz-1", "Shannon spectral efficiency",
                                                "mean_k log2(1 + SINR[k]); 0 where not served",
                                                nan_means=NAN_RATE),
-        shannon_rate_bps=_var(TR, shannon_se * band_hz, "bit s-1", "Shannon rate",
+        shannon_rate_bps=_var(TR, rate["shannon_rate_bps"], "bit s-1", "Shannon rate",
                               "shannon_spectral_efficiency_bpshz times the allocated bandwidth",
                               nan_means=NAN_RATE),
         mcs_modulation_order=_var("mcs", phy.mcs.modulation_order, "bit",
@@ -378,8 +358,7 @@ def compute_kpis(cirs: xr.Dataset, cfg: SceneConfig, codebook_weights=None, sour
                          "element); every base station transmits on the same allocation",
         combining="maximum-ratio combining over the receive antennas, matched per subcarrier "
                   "to the serving beam",
-        serving_rule="per receiver, the candidate link whose best beam has the highest "
-                     "wideband SINR (ties: lowest link index)",
+        serving_rule=SERVING_RULE + " (here: the link index)",
         best_beam_rule="per link, the beam with the highest wideband SINR",
         masking_rule="per-link KPIs need a valid path and a receiver neither inside a building "
                      "nor within 1 cm of the transmitter; a receiver with either flag on any "
@@ -402,7 +381,7 @@ def compute_kpis(cirs: xr.Dataset, cfg: SceneConfig, codebook_weights=None, sour
         num_re_for_tbs=n_re, dmrs_re_per_prb=link.dmrs_re_per_prb,
         overhead_re_per_prb=link.overhead_re_per_prb, num_layers=1,
         carrier_frequency_hz=fc_hz, noise_figure_db=rxcfg.noise_figure_db,
-        temperature_k=rxcfg.temperature_k, noise_power_per_re_dbm=float(_db(noise_w * 1e3)),
+        temperature_k=rxcfg.temperature_k, noise_power_per_re_dbm=float(w_to_dbm(noise_w)),
         harq_seed=f"numpy default_rng(({cfg.seed}, {HARQ_STREAM}))",
         references=REFERENCES, kpi_definitions="docs/link-level.md",
     )

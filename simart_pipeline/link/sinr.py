@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from simart_pipeline.link.beams import beamformed_channel
+from simart_pipeline.link.budget import serving_station
 from simart_pipeline.link.ofdm import channel_frequency_response
 
 INTERFERENCE_RULE = (
@@ -81,8 +82,7 @@ def sinr_chunk(a, tau_s, valid, carrier_frequency_hz, offsets_hz, weights, p_re_
 
     on_rx = rx_of_link[None, :] == np.arange(num_rx)[:, None]             # [R, L]
     cand = candidate[:, None, :] & on_rx[None]                           # [T, R, L]
-    served = cand.any(axis=-1)
-    serving = np.where(cand, best_sinr[:, None, :], -1.0).argmax(axis=-1)  # [T, R]
+    served, serving = serving_station(best_sinr[:, None, :], cand, axis=-1)  # [T, R]
     serving_beam = np.take_along_axis(best, serving, axis=1)
     t = np.arange(T)[:, None]
     signal_w = signal[t, serving, serving_beam] * served[..., None]      # [T, R, K]
