@@ -21,13 +21,13 @@ from dataclasses import dataclass
 
 import numpy as np
 import xarray as xr
-from scipy.constants import speed_of_light
 
 from simart_pipeline.ckm import moments as mom
 from simart_pipeline.ckm.grid import cell_centres, outside_region, tile_slices
 from simart_pipeline.config import SceneConfig
 from simart_pipeline.link.budget import power_db
 from simart_pipeline.scene.geometry import SourceGeometry, inside_buildings
+from simart_pipeline.vocabulary import SPEED_OF_LIGHT_MPS
 
 MASKED = "cell masked (inside a building or outside the region), or nothing reached it"
 PROPAGATION_FLOAT_LAYERS = ("path_gain_db", "path_loss_db", "path_gain_coherent_db", "rx_power_dbm",
@@ -77,7 +77,7 @@ def codebook_weights(cfg: SceneConfig, tx_ant_positions_m: np.ndarray | None, sc
 
     if tx_ant_positions_m is None:
         a = cfg.base_stations[0].array
-        lam = speed_of_light / cfg.ofdm.carrier_frequency_hz
+        lam = SPEED_OF_LIGHT_MPS / cfg.ofdm.carrier_frequency_hz
         zz, yy = np.meshgrid(np.arange(a.rows), np.arange(a.cols), indexing="ij")
         tx_ant_positions_m = np.column_stack([np.zeros(a.num_antennas), yy.ravel() * a.spacing_wavelengths * lam,
                                               zz.ravel() * a.spacing_wavelengths * lam])
@@ -93,7 +93,7 @@ def reference_moments(radio, cfg: SceneConfig, points: np.ndarray, weights: np.n
     p = radio.grid_scan(tx, tx_ori, points, deterministic=cfg.ckm.deterministic_solver)
     a = p.a.astype(np.complex128)                          # [N, r, B, n, P]
     power = np.mean(np.abs(a) ** 2, axis=(1, 3))            # [N, B, P]
-    tau0 = np.linalg.norm(points[:, None, :] - tx[None], axis=-1) / speed_of_light  # [N, B]
+    tau0 = np.linalg.norm(points[:, None, :] - tx[None], axis=-1) / SPEED_OF_LIGHT_MPS  # [N, B]
     angles = np.stack([p.phi_r, p.theta_r, p.phi_t, p.theta_t], axis=-1)  # [N, B, P, 4] (mom.ANGLES)
     num_beams = weights.shape[0]
     beam = np.zeros(power.shape + (num_beams,))
@@ -165,7 +165,7 @@ def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_
         coherent[:] = np.nan
     tx = np.array([b.position_m for b in cfg.base_stations], np.float64)
     centre = np.stack([xx, yy, hh], -1)
-    m.tau0_s = np.linalg.norm(centre[None] - tx[:, None, None, None, :], axis=-1) / speed_of_light
+    m.tau0_s = np.linalg.norm(centre[None] - tx[:, None, None, None, :], axis=-1) / SPEED_OF_LIGHT_MPS
     # Masked cells hold nothing, whatever a solver deposited there.
     for f in mom.CellMoments.__dataclass_fields__:
         v = getattr(m, f)

@@ -46,12 +46,12 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 import pandas as pd
-from scipy.constants import c as SPEED_OF_LIGHT
 
 from simart_pipeline.ckm.moments import CellMoments, layers_from_moments
 from simart_pipeline.ckm.shoot_bounce import (DIRECTION_QUANTUM, Q_BITS, Q_OFFSET, Grid, Tracer,
                                               grid_from_centres, outdoor_fraction)
 from simart_pipeline.link.beams import rotation_local_to_world
+from simart_pipeline.vocabulary import SPEED_OF_LIGHT_MPS
 
 __all__ = ["OnePassMoments", "beam_factors", "one_pass_moments", "outdoor_fraction"]
 
@@ -94,7 +94,7 @@ class _Accumulator:
         self.m = CellMoments.zeros((ncell,), None if codebook is None else codebook.shape[0])
         self.centres = grid.centres()
         self.tx = np.asarray(tx_position_m, np.float64)
-        self.m.tau0_s = np.linalg.norm(self.centres - self.tx, axis=-1) / SPEED_OF_LIGHT
+        self.m.tau0_s = np.linalg.norm(self.centres - self.tx, axis=-1) / SPEED_OF_LIGHT_MPS
         self.codebook = codebook
         self.ant = ant_positions_m
         self.rot = tx_rotation
@@ -108,7 +108,7 @@ class _Accumulator:
         if line_of_sight:
             m.los_power += np.bincount(cell, p, n)
         m.count += np.bincount(cell, minlength=n)
-        tau = dep["dist"].astype(np.float64) / SPEED_OF_LIGHT
+        tau = dep["dist"].astype(np.float64) / SPEED_OF_LIGHT_MPS
         np.minimum.at(m.min_delay_s, cell, tau)
         dtau = tau - m.tau0_s[cell]
         pd = p * dtau

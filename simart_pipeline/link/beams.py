@@ -18,9 +18,9 @@ from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
-from scipy.constants import speed_of_light
 
 from simart_pipeline import frames
+from simart_pipeline.vocabulary import SPEED_OF_LIGHT_MPS
 
 
 def _axis_grid(num_elements: int, spacing_wavelengths: float, oversampling: int) -> np.ndarray:
@@ -119,7 +119,7 @@ def scene_codebook_weights(cfg, tx_ant_positions_m, scene_dir=None) -> np.ndarra
             raise ValueError("codebook.path is set: the scene directory is needed to read it")
         return load_codebook(Path(scene_dir) / cfg.codebook.path, pos.shape[0])
     array = cfg.base_stations[0].array   # one transmit array per scene (config validator)
-    return dft_codebook(pos, speed_of_light / cfg.ofdm.carrier_frequency_hz, array.rows,
+    return dft_codebook(pos, SPEED_OF_LIGHT_MPS / cfg.ofdm.carrier_frequency_hz, array.rows,
                         array.cols, cfg.codebook.oversampling, cfg.codebook.visible_only).weights
 
 

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
-from scipy.constants import speed_of_light
 
 from simart_pipeline.config import SceneConfig
 from simart_pipeline.link.beams import dft_codebook
@@ -30,6 +29,7 @@ from simart_pipeline.link.kpi_definitions import (DEFINITIONS, NAN_INTERFERENCE,
 from simart_pipeline.link.link_adaptation import select_mcs_outer_loop
 from simart_pipeline.link.ofdm import subcarrier_offsets_hz
 from simart_pipeline.link.sinr import INTERFERENCE_RULE, chunk_steps, sinr_chunk
+from simart_pipeline.vocabulary import SPEED_OF_LIGHT_MPS
 
 DEFAULT_MAX_CHUNK_BYTES = 256 * 2**20   # working set of one time chunk
 HARQ_STREAM = 0x4B5049                  # seed stream of the HARQ draws, next to cfg.seed
@@ -89,7 +89,7 @@ def _codebook(cirs, cfg, fc_hz, weights):
                              f"got {w.shape}")
         return w, {}, f"file codebook.path={cfg.codebook.path}, {w.shape[0]} beams"
     cb = dft_codebook(cirs["tx_ant_position_m"].transpose("tx_ant", "axis").values,
-                      speed_of_light / fc_hz, array.rows, array.cols, cfg.codebook.oversampling,
+                      SPEED_OF_LIGHT_MPS / fc_hz, array.rows, array.cols, cfg.codebook.oversampling,
                       cfg.codebook.visible_only)
     nan_dir = "beam beyond end-fire (beam_visible false): no real direction"
     with np.errstate(invalid="ignore"):

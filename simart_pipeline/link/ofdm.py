@@ -8,9 +8,9 @@ full carrier phase ``exp(-j 2 pi f_c tau)`` is applied here, together with the b
 from __future__ import annotations
 
 import numpy as np
-from scipy.constants import Boltzmann
 
 from simart_pipeline.config import Link, Ofdm
+from simart_pipeline.vocabulary import BOLTZMANN_J_PER_K
 
 
 def subcarrier_offsets_hz(ofdm: Ofdm) -> np.ndarray:
@@ -83,10 +83,10 @@ def channel_frequency_response(a, tau_s, valid, carrier_frequency_hz: float,
 
 
 def thermal_noise_power_w(bandwidth_hz, temperature_k, noise_figure_db) -> np.ndarray | float:
-    """Receiver noise power ``k_B T B 10^(NF/10)`` in W (k_B: CODATA 2018 via scipy.constants).
+    """Receiver noise power ``k_B T B 10^(NF/10)`` in W (k_B exact in the SI: vocabulary.BOLTZMANN_J_PER_K).
 
     ``bandwidth_hz``: Hz; ``temperature_k``: K; ``noise_figure_db``: dB. Broadcasts.
     """
-    return (Boltzmann * np.asarray(temperature_k, dtype=np.float64)
+    return (BOLTZMANN_J_PER_K * np.asarray(temperature_k, dtype=np.float64)
             * np.asarray(bandwidth_hz, dtype=np.float64)
             * 10.0 ** (np.asarray(noise_figure_db, dtype=np.float64) / 10.0))
