@@ -36,10 +36,16 @@ class SemanticClass(IntEnum):
 SEMANTIC_CLASS_NAMES: tuple[str, ...] = tuple(c.name.lower() for c in SemanticClass)
 
 
+def _cf_flags(enum, key: str = "flag_values") -> dict:
+    """CF flag attrs of an enumeration: ``flag_values`` (or ``flag_masks`` for bit flags) and
+    ``flag_meanings``, the member names in lower case."""
+    return {key: np.array([int(m) for m in enum], np.uint8),
+            "flag_meanings": " ".join(m.name.lower() for m in enum)}
+
+
 def semantic_flag_attrs() -> dict:
     """CF ``flag_values`` / ``flag_meanings`` of :class:`SemanticClass`, for every label variable."""
-    return {"flag_values": np.array([int(c) for c in SemanticClass], np.uint8),
-            "flag_meanings": " ".join(SEMANTIC_CLASS_NAMES)}
+    return _cf_flags(SemanticClass)
 
 
 # --- interaction kinds ----------------------------------------------------------------------------
@@ -56,8 +62,7 @@ class InteractionKind(IntEnum):
 
 def interaction_flag_attrs() -> dict:
     """CF ``flag_values`` / ``flag_meanings`` of :class:`InteractionKind`."""
-    return {"flag_values": np.array([int(k) for k in InteractionKind], np.uint8),
-            "flag_meanings": " ".join(k.name.lower() for k in InteractionKind)}
+    return _cf_flags(InteractionKind)
 
 
 class LinkStatus(IntFlag):
@@ -70,8 +75,7 @@ class LinkStatus(IntFlag):
 
 def link_status_flag_attrs() -> dict:
     """CF ``flag_masks`` / ``flag_meanings`` of :class:`LinkStatus`."""
-    return {"flag_masks": np.array([int(f) for f in LinkStatus], np.uint8),
-            "flag_meanings": " ".join(f.name.lower() for f in LinkStatus)}
+    return _cf_flags(LinkStatus, "flag_masks")
 
 
 # --- axes and quaternions -------------------------------------------------------------------------
