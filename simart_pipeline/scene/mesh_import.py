@@ -31,7 +31,8 @@ import trimesh
 from simart_pipeline.config import MeshImportRules, check_mesh_labels
 from simart_pipeline.scene import simplify
 from simart_pipeline.scene.geometry import Feature, SourceGeometry
-from simart_pipeline.scene.meshes import SceneMeshes, SemanticClass
+from simart_pipeline.scene.meshes import SceneMeshes
+from simart_pipeline.vocabulary import SemanticClass
 
 SUPPORTED_SUFFIXES = (".obj", ".ply", ".stl", ".gltf", ".glb")
 _Y_UP_TO_Z_UP = np.array([[1.0, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]])  # (x, y, z) -> (x, -z, y)
