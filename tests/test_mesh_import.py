@@ -12,6 +12,7 @@ import pytest
 import trimesh
 import yaml
 
+from simart_pipeline.vocabulary import SemanticClass
 from simart_pipeline import stores
 from simart_pipeline.config import ConfigError, MeshImportRules, load_scene_config, resolve_source_path
 from simart_pipeline.scene import geometry, meshes, mesh_import, simplify
@@ -187,8 +188,8 @@ def test_visual_faces_carry_class_instance_and_full_detail(block_built, block):
     assert m.visual.area == pytest.approx(sum(p.mesh.area for p in parts), rel=1e-9)
     ids = {p.name: p.part_id for p in parts}
     ground = m.face_instance == ids["ground"]
-    assert np.all(m.face_class[ground] == meshes.SemanticClass.GROUND)
-    assert np.all(m.face_class[~ground] == meshes.SemanticClass.BUILDING)
+    assert np.all(m.face_class[ground] == SemanticClass.GROUND)
+    assert np.all(m.face_class[~ground] == SemanticClass.BUILDING)
     assert set(np.unique(m.face_instance)) == set(ids.values())
 
 
@@ -492,7 +493,7 @@ def test_example_scenes_validate_and_simplify(name):
     if name == "indoor":
         assert report["removed"]["small_part"]["components"] >= 10 * 10  # furniture of ten rooms
         assert all(cls != "unlabeled" for cls, _ in m.radio)             # no furniture left
-        assert (m.face_class == meshes.SemanticClass.UNLABELED).any()    # but the visual has it
+        assert (m.face_class == SemanticClass.UNLABELED).any()    # but the visual has it
     else:
         assert ("water", "sea_water") in m.radio and ("vehicle", "metal") in m.radio
 

@@ -12,6 +12,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from conftest import REPO, SHARED_DATA
+from simart_pipeline.vocabulary import SemanticClass
 from simart_pipeline.cli import main
 from simart_pipeline.config import load_scene_config
 from simart_pipeline.radio import materials as radio_materials
@@ -172,7 +173,7 @@ def test_building_corners_have_the_same_enu_coordinates_in_both_meshes(built, na
 def test_visual_mesh_is_the_radio_mesh_plus_facade_detail(built):
     d, info, geom = built["taipei.osm"]
     m = meshes.load(d)
-    bld = m.face_class == meshes.SemanticClass.BUILDING
+    bld = m.face_class == SemanticClass.BUILDING
     radio_bld = sum(len(v.faces) for (c, _), v in m.radio.items() if c == "building")
     assert bld.sum() > 5 * radio_bld      # window frames
     assert set(np.unique(m.face_instance[bld])) == {f.instance_id for f in geom.volumes()}
@@ -285,7 +286,7 @@ def test_urban_scene_validates_and_the_asset_builds_what_the_cli_builds(tmp_path
     # the tower: an outline whose parts carry its shape is not extruded itself
     tower = [f for f in geom.of_class("building") if f.has_parts]
     assert len(tower) == 1 and tower[0] not in geom.volumes()
-    bld = asset.meshes.face_class == meshes.SemanticClass.BUILDING
+    bld = asset.meshes.face_class == SemanticClass.BUILDING
     top = asset.meshes.visual.vertices[asset.meshes.visual.faces[bld & (asset.meshes.face_instance
                                                                         == tower[0].source_id)]][..., 2].max()
     assert top == pytest.approx(max(p.height_m for p in geom.of_class("building_part")

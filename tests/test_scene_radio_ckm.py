@@ -7,6 +7,7 @@ import shapely
 
 from conftest import scene_config
 
+from simart_pipeline.vocabulary import SemanticClass
 from simart_pipeline.scene import extrude, geometry, meshes
 
 
@@ -42,7 +43,7 @@ def test_visual_faces_carry_class_and_instance(tiny_built):
     _, geom, m, _ = tiny_built
     assert len(m.face_class) == len(m.visual.faces) == len(m.face_instance)
     ids = {f.source_id for f in geom.of_class("building")}
-    bld = m.face_class == meshes.SemanticClass.BUILDING
+    bld = m.face_class == SemanticClass.BUILDING
     assert set(np.unique(m.face_instance[bld])) == ids
     # every building face lies inside (or on) its own footprint, window frames at most their depth out
     centres = m.visual.triangles_center
