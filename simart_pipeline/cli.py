@@ -77,9 +77,41 @@ def _plan(cfg, weathers, tiles):
     return ws, ts
 
 
+def _label(key) -> str:
+    return key if isinstance(key, str) else "|".join(f"{k}={v}" for k, v in key.keys_by_dimension.items())
+
+
+def partition_status(instance, plan, asset: str, key, data_root: Path, paths: list[Path]) -> tuple[bool, str]:
+    """(up to date, why not): up to date when the last materialisation recorded in ``instance`` has
+    the data version the inputs give now, was written under ``data_root``, and its stores exist."""
+    import dagster as dg
+
+    from simart_pipeline import versions
+    from simart_pipeline.partitions import split_key
+
+    _, sub = split_key(key)
+    expected = plan.data_version(asset, sub)
+    records = instance.fetch_materializations(
+        dg.AssetRecordsFilter(asset_key=dg.AssetKey(asset), asset_partitions=[str(key)]), limit=1).records
+    if not records:
+        return False, "never materialised"
+    md = records[0].event_log_entry.asset_materialization.metadata
+    recorded = md["data_version"].value if "data_version" in md else None
+    if "data_root" not in md or md["data_root"].value != str(data_root):
+        return False, "not materialised under this data root"
+    if not all(p.exists() for p in paths):
+        return False, "its store is missing"
+    if recorded == expected:
+        return True, ""
+    old = md["data_version_inputs"].value if "data_version_inputs" in md else None
+    return False, versions.why_different(old, plan.inputs(asset, sub))
+
+
 def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=None, verbose=False,
-                      instance=None, progress=print) -> dict[str, list[Path]]:
-    """Register the scene and materialise every asset partition of it; returns the store paths."""
+                      instance=None, progress=print, force: bool = False) -> dict[str, list[Path]]:
+    """Register the scene and materialise every asset partition of it that is missing or stale
+    (all of them with ``force``); returns the store paths. Each partition's line says whether it was
+    computed, and why, or was already up to date."""
     import dagster as dg
 
     from simart_pipeline.assets import ALL_ASSETS
@@ -94,6 +126,7 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
     instance.add_dynamic_partitions(scene_partitions.name, [cfg.name])
     defs = build_definitions(data_root=str(data_root))
     resources = defs.resources
+    plan = resources["project"].version_plan(cfg.name)
     run_config = None if verbose else {"loggers": {"console": {"config": {"log_level": "WARNING"}}}}
     steps = [(["osm_extract", "paired_meshes", "trajectory"], cfg.name)]
     steps += [(["sensor_frames", "cirs", "kpis", "session"], dg.MultiPartitionKey({"scene": cfg.name, "weather": w}))
@@ -101,31 +134,52 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
     steps += [(["ckm_layers"], dg.MultiPartitionKey({"scene": cfg.name, "tile": t})) for t in tiles]
     steps += [(["ckm_map"], cfg.name)]
     total = sum(len(s[0]) for s in steps)
-    done = 0
+    done = computed = 0
     t_start = time.perf_counter()
     for names, key in steps:
-        label = key if isinstance(key, str) else "|".join(f"{k}={v}" for k, v in key.keys_by_dimension.items())
-        t0 = time.perf_counter()
-        progress(f"[{done + 1:>2}-{done + len(names):>2}/{total}] {', '.join(names)} ({label}) ...")
-        result = dg.materialize(ALL_ASSETS, selection=names, partition_key=key, instance=instance,
-                                resources=resources, run_config=run_config, raise_on_error=False)
-        if not result.success:
-            failures = [e for e in result.all_events if e.is_step_failure]
-            msg = failures[0].step_failure_data.error.message.strip() if failures else "run failed"
-            raise RuntimeError(f"{', '.join(names)} ({label}) failed: {msg}")
+        label = _label(key)
+        stale = {}
+        for name in names:
+            ok, why = (False, "--force") if force else partition_status(
+                instance, plan, name, key, data_root, stores_of(name, key, data_root, cfg))
+            if not ok:
+                stale[name] = why
+        for name in names:
+            if name not in stale:
+                progress(f"[{done + names.index(name) + 1:>2}/{total}] {name} ({label}): up to date")
+        if stale:
+            t0 = time.perf_counter()
+            for name, why in stale.items():
+                progress(f"[{done + names.index(name) + 1:>2}/{total}] {name} ({label}): computing ({why})")
+            result = dg.materialize(ALL_ASSETS, selection=list(stale), partition_key=key, instance=instance,
+                                    resources=resources, run_config=run_config, raise_on_error=False)
+            if not result.success:
+                failures = [e for e in result.all_events if e.is_step_failure]
+                msg = failures[0].step_failure_data.error.message.strip() if failures else "run failed"
+                raise RuntimeError(f"{', '.join(stale)} ({label}) failed: {msg}")
+            computed += len(stale)
+            progress(f"        done in {time.perf_counter() - t0:.1f} s")
         done += len(names)
-        progress(f"        done in {time.perf_counter() - t0:.1f} s")
-    progress(f"all {total} asset partitions of scene {cfg.name!r} materialised in "
-             f"{time.perf_counter() - t_start:.1f} s")
+    progress(f"scene {cfg.name!r}: {computed} of {total} asset partitions computed, {total - computed} up to date, "
+             f"in {time.perf_counter() - t_start:.1f} s")
     out: dict[str, list[Path]] = {}
     for names, key in steps:
         for name in names:
             if name not in ("ckm_layers", "ckm_map"):  # the tiles write into the scene's mosaic maps
-                out.setdefault(name, []).append(store_of(name, key, data_root))
+                out.setdefault(name, []).extend(stores_of(name, key, data_root, cfg))
     from simart_pipeline.ckm.maps import map_groups, map_path
 
     out["ckm"] = [map_path(data_root, cfg.name, name) for name in map_groups(cfg)]
     return out
+
+
+def stores_of(asset: str, key, data_root: Path, cfg) -> list[Path]:
+    """The stores an asset partition writes (the CKM assets: the scene's mosaic maps)."""
+    if asset in ("ckm_layers", "ckm_map"):
+        from simart_pipeline.ckm.maps import map_groups, map_path
+
+        return [map_path(data_root, cfg.name, name) for name in map_groups(cfg)]
+    return [store_of(asset, key, data_root)]
 
 
 def store_of(asset: str, key, data_root: Path) -> Path:
@@ -154,7 +208,8 @@ def cmd_run(args) -> int:
     data_root = Path(args.data or registry.default_data_root()).resolve()
     print(f"scene {cfg.name!r} from {Path(args.scene_dir).resolve()}; backend {backend}; data root {data_root}")
     try:
-        stores = materialize_scene(Path(args.scene_dir), data_root, args.weather, args.tile, args.verbose)
+        stores = materialize_scene(Path(args.scene_dir), data_root, args.weather, args.tile, args.verbose,
+                                   force=args.force)
     except RuntimeError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -273,13 +328,17 @@ def build_parser() -> argparse.ArgumentParser:
                     "Sionna RT channels, KPIs and channel knowledge maps, as Zarr stores.")
     sub = p.add_subparsers(dest="command", required=True)
     r = sub.add_parser("run", help="materialise every asset of a scene on the embedded Dagster instance",
-                       description="Validate and register SCENE_DIR, then materialise all of its asset partitions "
-                                   "(every weather and CKM tile unless narrowed) and print where the stores are.")
+                       description="Validate and register SCENE_DIR, then materialise those of its asset partitions "
+                                   "(every weather and CKM tile unless narrowed) that are missing or stale (their "
+                                   "code, the part of the config they read, a source file or an upstream data "
+                                   "version changed), say why each ran, and print where the stores are.")
     r.add_argument("scene_dir", metavar="SCENE_DIR", help="directory holding scene.yaml (e.g. scenes/demo)")
     r.add_argument("--weather", nargs="+", metavar="W", help="only these weathers (sunny, rainy, night)")
     r.add_argument("--tile", nargs="+", metavar="T", help="only these CKM tiles (r<row>c<col>)")
     r.add_argument("--data", metavar="DIR", help="data root for the stores (default: ./data or $SIMART_DATA)")
     r.add_argument("--verbose", action="store_true", help="show Dagster's own event log")
+    r.add_argument("--force", action="store_true",
+                   help="recompute every partition, even those whose data version is up to date")
     r.set_defaults(func=cmd_run)
     v = sub.add_parser("validate", help="check a scene's config and inputs",
                        description="Check SCENE_DIR/scene.yaml against the schema and the scene's inputs; report "

@@ -10,13 +10,14 @@ from simart_pipeline import previews, provenance
 from simart_pipeline.ckm import mosaic
 from simart_pipeline.ckm.grid import parse_tile_key, scene_tiles, tile_slices
 from simart_pipeline.ckm.maps import map_groups, map_path, map_template, picture_layers
+from simart_pipeline.assets.versioning import code_version, versioned_result
 from simart_pipeline.partitions import from_scene, scene_partitions, scene_tile, split_key
 from simart_pipeline.resources import ProjectResource, RayTracerResource
 from simart_pipeline.scene import geometry
 from simart_pipeline.scene.meshes import SceneMeshes
 
 
-@dg.asset(partitions_def=scene_tile, code_version="2", group_name="ckm", pool="raytracing",
+@dg.asset(partitions_def=scene_tile, code_version=code_version("ckm_layers"), group_name="ckm", pool="raytracing",
           ins={"paired_meshes": dg.AssetIn(partition_mapping=from_scene),
                "osm_extract": dg.AssetIn(partition_mapping=from_scene)})
 def ckm_layers(context: dg.AssetExecutionContext, project: ProjectResource, ray_tracer: RayTracerResource,
@@ -29,7 +30,7 @@ def ckm_layers(context: dg.AssetExecutionContext, project: ProjectResource, ray_
     cfg = project.config(scene)
     t0 = time.perf_counter()
     if tile_slices(cfg.ckm, tile) is None:  # a static tile this scene's grid does not use
-        return dg.MaterializeResult(metadata={"in_scene_tiling": False, "cells_traced": 0})
+        return versioned_result(context, project, "ckm_layers", {"in_scene_tiling": False, "cells_traced": 0})
     geom = geometry.from_dataset(osm_extract.load())
     meta = {"in_scene_tiling": True, "mode": cfg.ckm.mode}
     grid = tile_grid(cfg, geom, tile)
@@ -49,10 +50,10 @@ def ckm_layers(context: dg.AssetExecutionContext, project: ProjectResource, ray_
     meta["cells"] = int(grid.traced.size)
     if meta["cells_traced"]:
         meta["cells_per_s"] = round(meta["cells_traced"] / max(meta["compute_s"], 1e-9), 1)
-    return dg.MaterializeResult(metadata=meta)
+    return versioned_result(context, project, "ckm_layers", meta)
 
 
-@dg.asset(partitions_def=scene_partitions, code_version="1", group_name="ckm",
+@dg.asset(partitions_def=scene_partitions, code_version=code_version("ckm_map"), group_name="ckm",
           deps=[dg.AssetDep("ckm_layers", partition_mapping=from_scene)],
           ins={"osm_extract": dg.AssetIn()})
 def ckm_map(context: dg.AssetExecutionContext, project: ProjectResource, osm_extract: xr.Dataset) -> dg.MaterializeResult:
@@ -74,4 +75,4 @@ def ckm_map(context: dg.AssetExecutionContext, project: ProjectResource, osm_ext
             meta[f"{name}_{layer}"] = dg.MetadataValue.md(previews.heatmap(
                 values, ds["x"].values, ds["y"].values, geom, label,
                 title=f"{scene} {name} {layer} (h = {float(ds['height'][0]):g} m)"))
-    return dg.MaterializeResult(metadata=meta)
+    return versioned_result(context, project, "ckm_map", meta)

@@ -7,11 +7,12 @@ import xarray as xr
 from simart_pipeline import provenance, stores
 from simart_pipeline.link.beams import scene_codebook_weights
 from simart_pipeline.link.kpis import compute_kpis
+from simart_pipeline.assets.versioning import code_version, versioned
 from simart_pipeline.partitions import scene_weather, split_key
 from simart_pipeline.resources import ProjectResource
 
 
-@dg.asset(partitions_def=scene_weather, code_version="2", group_name="radio")
+@dg.asset(partitions_def=scene_weather, code_version=code_version("kpis"), group_name="radio")
 def kpis(context: dg.AssetExecutionContext, project: ProjectResource,
          cirs: xr.Dataset) -> dg.Output[xr.Dataset]:
     """Beam gains, best beam, serving cell, SINR with interference, EESM, BLER, MCS, TBS, rates."""
@@ -31,4 +32,4 @@ def kpis(context: dg.AssetExecutionContext, project: ProjectResource,
             meta[f"{name}_median"] = float(np.nanmedian(v))
     if ds["rx_served"].any():
         meta["mcs_rate_mbps_mean"] = float(ds["mcs_rate_bps"].where(ds["rx_served"]).mean()) / 1e6
-    return dg.Output(ds, metadata=meta)
+    return versioned(context, project, "kpis", ds, meta)

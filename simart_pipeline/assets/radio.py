@@ -6,6 +6,7 @@ import dagster as dg
 import xarray as xr
 
 from simart_pipeline import provenance, stores
+from simart_pipeline.assets.versioning import code_version, versioned
 from simart_pipeline.partitions import from_scene, scene_weather, split_key
 from simart_pipeline.radio import cirs as radio_cirs
 from simart_pipeline.radio.materials import weathers_sharing_materials
@@ -18,7 +19,9 @@ from simart_pipeline.scene.meshes import SceneMeshes
 def _same_content_store(project: ProjectResource, scene: str, weather: str, key: str):
     """Another weather's CIR store of this scene with the same radio materials (one policy with the
     CKM maps: ``weathers_sharing_materials``) and the same content hash, if one exists."""
-    group = next(g for g in weathers_sharing_materials(project.config(scene).weathers).values() if weather in g)
+    cfg = project.config(scene)
+    group = next(g for g in weathers_sharing_materials(cfg.weathers, cfg.materials.weather_table()).values()
+                 if weather in g)
     for other in sorted(group):
         path = stores.store_path(project.data_root, "cirs", scene, other, suffix=".zarr")
         if other == weather or not path.exists():
@@ -33,7 +36,7 @@ def _same_content_store(project: ProjectResource, scene: str, weather: str, key:
     return None
 
 
-@dg.asset(partitions_def=scene_weather, code_version="2", group_name="radio", pool="raytracing",
+@dg.asset(partitions_def=scene_weather, code_version=code_version("cirs"), group_name="radio", pool="raytracing",
           ins={"paired_meshes": dg.AssetIn(partition_mapping=from_scene),
                "trajectory": dg.AssetIn(partition_mapping=from_scene),
                "osm_extract": dg.AssetIn(partition_mapping=from_scene)})
@@ -73,4 +76,4 @@ def cirs(context: dg.AssetExecutionContext, project: ProjectResource, ray_tracer
         meta["ms_per_link_step"] = round(1e3 * elapsed / max(n_rx, 1), 2)
     meta["paths_picture"] = dg.MetadataValue.md(traced_paths_markdown(
         radio, cfg, lg, geom, ds.sizes["time"] // 2, title=f"{scene}/{weather}"))
-    return dg.Output(ds, metadata=meta)
+    return versioned(context, project, "cirs", ds, meta)

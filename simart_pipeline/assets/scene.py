@@ -11,9 +11,10 @@ from simart_pipeline.mobility.trajectory import build_trajectory, check_clear_of
 from simart_pipeline.partitions import scene_partitions
 from simart_pipeline.resources import ProjectResource
 from simart_pipeline.scene import build, geometry, meshes, source
+from simart_pipeline.assets.versioning import code_version, versioned
 
 
-@dg.asset(partitions_def=scene_partitions, code_version="2", group_name="scene")
+@dg.asset(partitions_def=scene_partitions, code_version=code_version("osm_extract"), group_name="scene")
 def osm_extract(context: dg.AssetExecutionContext, project: ProjectResource) -> dg.Output[xr.Dataset]:
     """Source geometry in the local ENU frame: buildings and parts, roads, land cover, ground; heights, roofs, materials."""
     scene = context.partition_key
@@ -22,11 +23,12 @@ def osm_extract(context: dg.AssetExecutionContext, project: ProjectResource) -> 
     ds = geometry.to_dataset(geom)
     ds.attrs.update(provenance.attrs(cfg, "osm_extract", source_kind=cfg.source.kind))
     counts = {c: len(geom.of_class(c)) for c in geometry.FEATURE_CLASSES}
-    return dg.Output(ds, metadata={**{f"num_{k}": v for k, v in counts.items()}, "num_warnings": len(geom.warnings),
-                                   "preview": dg.MetadataValue.md(previews.top_view(geom, cfg, title=scene))})
+    return versioned(context, project, "osm_extract", ds, {
+        **{f"num_{k}": v for k, v in counts.items()}, "num_warnings": len(geom.warnings),
+        "preview": dg.MetadataValue.md(previews.top_view(geom, cfg, title=scene))})
 
 
-@dg.asset(partitions_def=scene_partitions, code_version="2", group_name="scene")
+@dg.asset(partitions_def=scene_partitions, code_version=code_version("paired_meshes"), group_name="scene")
 def paired_meshes(context: dg.AssetExecutionContext, project: ProjectResource,
                   osm_extract: xr.Dataset) -> dg.Output[meshes.PairedMeshesOutput]:
     """Visual mesh (per-face class and instance, facade detail) and radio mesh (Mitsuba XML + PLY)."""
@@ -37,7 +39,7 @@ def paired_meshes(context: dg.AssetExecutionContext, project: ProjectResource,
                                         provenance.attrs(cfg, "paired_meshes"))
     counts = out.meshes.counts()
     report = out.scene_info.get("mesh_import", {})
-    return dg.Output(out, metadata={
+    return versioned(context, project, "paired_meshes", out, {
         **{k: v for k, v in counts.items() if k not in ("radio_materials", "radio_triangles_per_mesh")},
         "radio_materials": ", ".join(counts["radio_materials"]),
         "radio_triangles_per_mesh": dg.MetadataValue.json(counts["radio_triangles_per_mesh"]),
@@ -45,7 +47,7 @@ def paired_meshes(context: dg.AssetExecutionContext, project: ProjectResource,
         "build_s": round(time.perf_counter() - t0, 3)})
 
 
-@dg.asset(partitions_def=scene_partitions, code_version="2", group_name="scene")
+@dg.asset(partitions_def=scene_partitions, code_version=code_version("trajectory"), group_name="scene")
 def trajectory(context: dg.AssetExecutionContext, project: ProjectResource,
                osm_extract: xr.Dataset) -> dg.Output[xr.Dataset]:
     """Platform poses, velocities and accelerations on the shared clock under each platform's dynamic
@@ -57,7 +59,7 @@ def trajectory(context: dg.AssetExecutionContext, project: ProjectResource,
     check_clear_of_buildings(ds, geom, where=f"scene {scene}")
     ds.attrs.update(provenance.attrs(cfg, "trajectory"))
     motion = json.loads(ds.attrs["dynamics"])
-    return dg.Output(ds, metadata={"num_platforms": ds.sizes["platform"], "num_samples": ds.sizes["time"],
-                                   "motion_end_s": dg.MetadataValue.json(
-                                       {k: v["motion_end_s"] for k, v in motion.items()}),
-                                   "preview": dg.MetadataValue.md(previews.top_view(geom, cfg, ds, title=scene))})
+    return versioned(context, project, "trajectory", ds, {
+        "num_platforms": ds.sizes["platform"], "num_samples": ds.sizes["time"],
+        "motion_end_s": dg.MetadataValue.json({k: v["motion_end_s"] for k, v in motion.items()}),
+        "preview": dg.MetadataValue.md(previews.top_view(geom, cfg, ds, title=scene))})

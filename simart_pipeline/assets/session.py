@@ -4,11 +4,12 @@ import dagster as dg
 import xarray as xr
 
 from simart_pipeline import provenance
+from simart_pipeline.assets.versioning import code_version, versioned
 from simart_pipeline.partitions import from_scene, scene_weather, split_key
 from simart_pipeline.resources import ProjectResource
 
 
-@dg.asset(partitions_def=scene_weather, code_version="1", group_name="session",
+@dg.asset(partitions_def=scene_weather, code_version=code_version("session"), group_name="session",
           ins={"trajectory": dg.AssetIn(partition_mapping=from_scene)})
 def session(context: dg.AssetExecutionContext, project: ProjectResource, trajectory: xr.Dataset,
             sensor_frames: xr.DataTree, cirs: xr.Dataset, kpis: xr.Dataset) -> dg.Output[xr.DataTree]:
@@ -21,5 +22,5 @@ def session(context: dg.AssetExecutionContext, project: ProjectResource, traject
             groups[f"/sensors{node.path}"] = node.to_dataset().load()
     root = xr.Dataset(attrs=provenance.attrs(cfg, "session", weather=weather))
     tree = xr.DataTree.from_dict({"/": root, **groups})
-    return dg.Output(tree, metadata={"groups": ", ".join(sorted(groups)),
-                                     "duration_s": cfg.clock.duration_s})
+    return versioned(context, project, "session", tree, {"groups": ", ".join(sorted(groups)),
+                                                        "duration_s": cfg.clock.duration_s})

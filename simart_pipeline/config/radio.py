@@ -7,7 +7,7 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from simart_pipeline.config.base import _Model
-from simart_pipeline.radio.materials import RADIO_MATERIALS
+from simart_pipeline.radio.materials import RADIO_MATERIALS, WEATHER_MATERIALS
 
 
 class Materials(_Model):
@@ -27,6 +27,10 @@ class Materials(_Model):
     water: str = "fresh_water"
     thickness_m: float = Field(0.2, gt=0)
     tags: dict[str, dict[str, str]] = Field(default_factory=dict)
+    rain: dict[str, str] = Field(
+        default_factory=lambda: dict(WEATHER_MATERIALS["rainy"]),
+        description="what rain does: each dry material -> the wet material that replaces it in the rainy "
+        "radio scene (default: wet ground and rain-soaked facades); sunny and night keep the dry ones")
 
     @model_validator(mode="after")
     def _known(self):
@@ -34,12 +38,20 @@ class Materials(_Model):
             if getattr(self, key) not in RADIO_MATERIALS:
                 raise ValueError(f"{key}: unknown radio material {getattr(self, key)!r}; "
                                  f"known: {', '.join(RADIO_MATERIALS)}")
+        for dry, wet in self.rain.items():
+            for name in (dry, wet):
+                if name not in RADIO_MATERIALS:
+                    raise ValueError(f"rain.{dry}: unknown radio material {name!r}; known: {', '.join(RADIO_MATERIALS)}")
         for key, values in self.tags.items():
             for value, mat in values.items():
                 if mat not in RADIO_MATERIALS:
                     raise ValueError(f"tags.{key}.{value}: unknown radio material {mat!r}; "
                                      f"known: {', '.join(RADIO_MATERIALS)}")
         return self
+
+    def weather_table(self) -> dict[str, dict[str, str]]:
+        """Weather -> {material: the one that replaces it}: the defaults with this scene's rain."""
+        return {**{w: dict(v) for w, v in WEATHER_MATERIALS.items()}, "rainy": dict(self.rain)}
 
     def tag_rules(self) -> dict[str, dict[str, str]]:
         """:data:`DEFAULT_TAG_MATERIALS` with this config's ``tags`` merged over it."""

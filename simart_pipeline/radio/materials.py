@@ -63,8 +63,9 @@ CUSTOM_MATERIALS: dict[str, CustomMaterial] = {m.name: m for m in (
 )}
 RADIO_MATERIALS: tuple[str, ...] = tuple(ITU_MATERIALS) + tuple(CUSTOM_MATERIALS)
 
-# What rain does to each material; sunny and night keep the dry ones (the reuse rule for CIRs
-# compares the resulting materials, not the weather names).
+# What each weather does to the materials, by default (a scene's ``materials.rain`` replaces the
+# rainy row); sunny and night keep the dry ones. The reuse rule compares the resulting materials,
+# not the weather names.
 WEATHER_MATERIALS: dict[str, dict[str, str]] = {
     "sunny": {},
     "night": {},
@@ -73,24 +74,21 @@ WEATHER_MATERIALS: dict[str, dict[str, str]] = {
 }
 
 
-def weathers_sharing_materials(weathers) -> dict[str, list[str]]:
+def weathers_sharing_materials(weathers, table: dict[str, dict[str, str]] | None = None) -> dict[str, list[str]]:
     """The one reuse policy of radio work across weathers: weathers whose material swaps are equal
     trace the same channels, so they share one CIR trace and one channel knowledge map, named after
-    the first of them in ``weathers`` order (sunny and night: ``sunny``; rain: ``rainy``)."""
+    the first of them in ``weathers`` order (sunny and night: ``sunny``; rain: ``rainy``).
+
+    :param table: weather -> {dry material: its replacement} (default :data:`WEATHER_MATERIALS`;
+        a scene's is ``cfg.materials.weather_table()``)."""
+    table = WEATHER_MATERIALS if table is None else table
     groups: dict[str, list[str]] = {}
     for w in weathers:
-        if w not in WEATHER_MATERIALS:
-            raise ValueError(f"unknown weather {w!r}; known: {', '.join(WEATHER_MATERIALS)}")
-        key = next((g for g in groups if WEATHER_MATERIALS[g] == WEATHER_MATERIALS[w]), w)
+        if w not in table:
+            raise ValueError(f"unknown weather {w!r}; known: {', '.join(table)}")
+        key = next((g for g in groups if table[g] == table[w]), w)
         groups.setdefault(key, []).append(w)
     return groups
-
-
-def weather_material(name: str, weather: str) -> str:
-    """The radio material that ``name`` becomes in ``weather``."""
-    if weather not in WEATHER_MATERIALS:
-        raise ValueError(f"unknown weather {weather!r}; known: {', '.join(WEATHER_MATERIALS)}")
-    return WEATHER_MATERIALS[weather].get(name, name)
 
 
 def water_permittivity(frequency_hz: float, temperature_c: float = WATER_TEMPERATURE_C,

@@ -79,13 +79,16 @@ class RadioScene:
     :param tx_array, rx_array: the arrays of every transmitter and every receiver (Sionna RT holds
         one of each per scene).
     :param solver: PathSolver settings (depth, samples, mechanisms, seed, memory budget).
-    :param weather: rain swaps dry materials for wet ones (:mod:`simart_pipeline.radio.materials`).
+    :param weather: the weather's name (rain swaps dry materials for wet ones).
+    :param weather_materials: {material: the one that replaces it in this weather}; default: the
+        weather's row of :data:`simart_pipeline.radio.materials.WEATHER_MATERIALS`.
     :param material_thickness_m: thickness of the materials swapped in for the weather (m).
     """
 
     def __init__(self, scene_xml: str | Path | None, *, frequency_hz: float, bandwidth_hz: float,
                  tx_array: Array, rx_array: Array, solver: RayTracing | None = None,
-                 weather: str = "sunny", material_thickness_m: float = Materials().thickness_m):
+                 weather: str = "sunny", weather_materials: dict[str, str] | None = None,
+                 material_thickness_m: float = Materials().thickness_m):
         engine.init()
         import sionna.rt as rt
 
@@ -101,7 +104,11 @@ class RadioScene:
         self.scene.bandwidth = bandwidth_hz
         self.scene.tx_array = sionna_array(tx_array)
         self.scene.rx_array = sionna_array(rx_array)
-        self.material_overrides = self._apply_weather(weather)
+        if weather_materials is None:
+            if weather not in materials.WEATHER_MATERIALS:
+                raise ValueError(f"unknown weather {weather!r}; known: {', '.join(materials.WEATHER_MATERIALS)}")
+            weather_materials = materials.WEATHER_MATERIALS[weather]
+        self.material_overrides = self._apply_weather(weather, weather_materials)
         self.solvers = {True: rt.PathSolver(deterministic=True), False: rt.PathSolver(deterministic=False)}
 
     @classmethod
@@ -109,14 +116,16 @@ class RadioScene:
         """The radio scene of a scene config: its carrier, bandwidth, arrays, solver and materials."""
         return cls(scene_xml, frequency_hz=cfg.ofdm.carrier_frequency_hz, bandwidth_hz=cfg.ofdm.bandwidth_hz,
                    tx_array=cfg.base_stations[0].array, rx_array=cfg.platforms[0].array,
-                   solver=cfg.ray_tracing, weather=weather, material_thickness_m=cfg.materials.thickness_m)
+                   solver=cfg.ray_tracing, weather=weather,
+                   weather_materials=cfg.materials.weather_table()[weather],
+                   material_thickness_m=cfg.materials.thickness_m)
 
-    def _apply_weather(self, weather: str) -> dict[str, str]:
+    def _apply_weather(self, weather: str, swaps: dict[str, str]) -> dict[str, str]:
         swapped: dict[str, object] = {}
         applied = {}
         for name, obj in sorted(self.scene.objects.items()):
             base = materials.material_name(obj.radio_material)
-            target = materials.weather_material(base, weather)
+            target = swaps.get(base, base)
             if target == base:
                 continue
             if target not in swapped:

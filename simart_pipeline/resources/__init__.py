@@ -7,7 +7,7 @@ from pathlib import Path
 import dagster as dg
 import xarray as xr
 
-from simart_pipeline import registry, stores
+from simart_pipeline import registry, stores, versions
 from simart_pipeline.config import SceneConfig, load_scene_config
 from simart_pipeline.partitions import split_key
 from simart_pipeline.scene import meshes as scene_meshes
@@ -28,6 +28,12 @@ class ProjectResource(dg.ConfigurableResource):
 
     def config(self, scene: str) -> SceneConfig:
         return load_scene_config(self.scene_dir(scene))
+
+    def version_plan(self, scene: str) -> versions.VersionPlan:
+        """The data versions of the scene's asset partitions, from its config and files as they are now
+        (file digests are cached by modification time, code versions per process)."""
+        d = self.scene_dir(scene)
+        return versions.VersionPlan(load_scene_config(d), d)
 
 
 _LOADED: dict[tuple, object] = {}  # radio scenes loaded in this process (one per scene file, config, weather)
