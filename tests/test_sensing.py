@@ -17,7 +17,7 @@ from simart_pipeline.scene.meshes import SceneMeshes, SemanticClass
 from simart_pipeline.sensing import raycast
 from simart_pipeline.sensing.inertial import STANDARD_GRAVITY_MPS2
 from simart_pipeline.sensing.lidar import beam_angles
-from simart_pipeline.sensing.streams import render_sensor_frames
+from simart_pipeline.sensing.sensor_frames import render_sensor_frames
 
 WALL_ID = 42
 GROUND_ID = 7

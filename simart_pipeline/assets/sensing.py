@@ -9,10 +9,10 @@ from simart_pipeline import previews, provenance
 from simart_pipeline.partitions import from_scene, scene_weather, split_key
 from simart_pipeline.resources import ProjectResource
 from simart_pipeline.scene.meshes import SceneMeshes
-from simart_pipeline.sensing.bag_import import build_sensor_frames
+from simart_pipeline.sensing.sensor_frames import build_sensor_frames
 
 
-@dg.asset(partitions_def=scene_weather, code_version="2", group_name="sensing", pool="rendering",
+@dg.asset(partitions_def=scene_weather, code_version="3", group_name="sensing", pool="rendering",
           ins={"paired_meshes": dg.AssetIn(partition_mapping=from_scene),
                "trajectory": dg.AssetIn(partition_mapping=from_scene)})
 def sensor_frames(context: dg.AssetExecutionContext, project: ProjectResource,
