@@ -44,7 +44,7 @@ STAGES: dict[str, Stage] = {
     "osm_extract": Stage(("simart_pipeline.scene.source", "simart_pipeline.scene.geometry"), "scene"),
     "paired_meshes": Stage(("simart_pipeline.scene.build",), "scene"),
     "trajectory": Stage(("simart_pipeline.mobility.trajectory", "simart_pipeline.mobility.replay"), "scene"),
-    "sensor_frames": Stage(("simart_pipeline.sensing.bag_import",), "weather"),
+    "sensor_frames": Stage(("simart_pipeline.sensing.sensor_frames",), "weather"),
     "cirs": Stage(("simart_pipeline.radio.cirs", "simart_pipeline.radio.tracer"), "weather"),
     "kpis": Stage(("simart_pipeline.link.kpis", "simart_pipeline.link.beams"), "weather"),
     "ckm_layers": Stage(("simart_pipeline.ckm.layers", "simart_pipeline.ckm.mosaic", "simart_pipeline.ckm.maps",

@@ -16,7 +16,8 @@ from simart_pipeline import frames, stores
 from simart_pipeline.config import ConfigError, ReplayTrajectory, SceneConfig, load_scene_config
 from simart_pipeline.mobility import bags, replay
 from simart_pipeline.mobility.trajectory import build_trajectory
-from simart_pipeline.sensing.bag_import import build_sensor_frames, import_streams
+from simart_pipeline.sensing.bag_import import import_streams
+from simart_pipeline.sensing.sensor_frames import build_sensor_frames
 
 from conftest import SHARED_DATA
 
@@ -305,6 +306,7 @@ def test_luminar_pointcloud_import_equals_the_raw_fields():
     ds = import_streams(cfg.sensor_imports[0], cfg, build_trajectory(cfg), BAGS)["/p0/luminar"]
     raw = raw_messages(BAGS / LUMINAR, "/luminar_pointcloud")
     assert ds.sizes["time"] == len(raw) == 5
+    assert ds.sizes["ring"] == 1  # an unorganised cloud (height 1) is one ring, its points along azimuth
     for i, (t_rec, msg) in enumerate(raw):
         n = msg.width * msg.height
         assert ds["point_count"].values[i] == n
@@ -313,12 +315,12 @@ def test_luminar_pointcloud_import_equals_the_raw_fields():
         assert not msg.is_bigendian and all(f.datatype == 7 for f in msg.fields[:4])  # float32 x y z intensity
         for c, name in enumerate(("x", "y", "z")):
             ref = [struct.unpack_from("<f", buf, k * step + off[name])[0] for k in range(n)]
-            np.testing.assert_array_equal(ds["points_m"].values[i, :n, c], ref)
+            np.testing.assert_array_equal(ds["points_m"].values[i, 0, :n, c], ref)
         ref = [struct.unpack_from("<f", buf, k * step + off["intensity"])[0] for k in range(n)]
-        np.testing.assert_array_equal(ds["intensity"].values[i, :n], ref)
+        np.testing.assert_array_equal(ds["intensity"].values[i, 0, :n], ref)
         ref = [struct.unpack_from("<H", buf, k * step + off["laser_id"])[0] for k in range(n)]
-        np.testing.assert_array_equal(ds["field_laser_id"].values[i, :n], ref)
-        assert ds["valid"].values[i, :n].all() and not ds["valid"].values[i, n:].any()
+        np.testing.assert_array_equal(ds["field_laser_id"].values[i, 0, :n], ref)
+        assert ds["valid"].values[i, 0, :n].all() and not ds["valid"].values[i, 0, n:].any()
     # the quirk: header stamps are months older than the record times; each gives its own clock
     assert ds.attrs["source_stamp"] == "message header stamps" and ds["time"].values[-1] < 0.5e9
     assert (ds["record_time_ns"] - ds["header_stamp_ns"]).min() > 200 * 86400 * 10**9
@@ -492,7 +494,8 @@ def test_sensing_stage_with_an_imported_and_a_rendered_stream(tiny_scene):
     assert imu.attrs["source_topic"] == "/imu/data" and imu.attrs["weather"] == "rainy"
     assert imu["time"].dtype == np.int64 and imu["time"].values[0] == 0  # the bag's first record is an IMU one
     np.testing.assert_array_equal(imu["record_time_ns"].values - start, imu["time"].values)
-    assert gps.attrs["rate_hz"] == 2.0 and "source_topic" not in gps.attrs  # rendered as before
+    assert gps.attrs["rate_hz"] == 2.0 and gps.attrs["source"].startswith("rendered")  # rendered as before
+    assert gps.attrs["source_topic"] == "none" and imu.attrs["weather_model"].startswith("none")
     np.testing.assert_array_equal(gps["time"].values, [0, 500_000_000, 1_000_000_000, 1_500_000_000, 2_000_000_000])
     # the rendered GPS antenna follows the replayed, shifted odometry
     np.testing.assert_allclose(gps["position_enu_m"].values[0], [first.x - 38.0, first.y - 18.0, first.z], atol=1e-9)

@@ -13,11 +13,12 @@ from scipy.spatial.transform import Rotation
 from simart_pipeline import clock, frames, stores
 from simart_pipeline.config import SceneConfig
 from simart_pipeline.mobility.trajectory import build_trajectory, poses_at
-from simart_pipeline.scene.meshes import SceneMeshes, SemanticClass
+from simart_pipeline.scene.meshes import SceneMeshes
+from simart_pipeline.vocabulary import SemanticClass
 from simart_pipeline.sensing import raycast
-from simart_pipeline.sensing.inertial import STANDARD_GRAVITY_MPS2
+from simart_pipeline.vocabulary import STANDARD_GRAVITY_MPS2
 from simart_pipeline.sensing.lidar import beam_angles
-from simart_pipeline.sensing.streams import render_sensor_frames
+from simart_pipeline.sensing.sensor_frames import render_sensor_frames
 
 WALL_ID = 42
 GROUND_ID = 7

@@ -10,7 +10,7 @@ from simart_pipeline.assets.versioning import code_version, versioned
 from simart_pipeline.partitions import from_scene, scene_weather, split_key
 from simart_pipeline.resources import ProjectResource
 from simart_pipeline.scene.meshes import SceneMeshes
-from simart_pipeline.sensing.bag_import import build_sensor_frames
+from simart_pipeline.sensing.sensor_frames import build_sensor_frames
 
 
 @dg.asset(partitions_def=scene_weather, code_version=code_version("sensor_frames"), group_name="sensing", pool="rendering",

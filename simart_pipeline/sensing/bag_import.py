@@ -1,25 +1,23 @@
-"""The sensor plug-in contract: streams recorded by another simulator, imported from a bag.
+"""Streams recorded by another simulator or a robot, imported from a bag into the stream contract.
 
-:func:`build_sensor_frames` is what the ``sensor_frames`` asset stores: every stream of the scene's
-``sensor_imports`` (``config.SensorImport``) is read from its bag into the group
-``/<device>/<sensor>``, replacing the embedded sensor of that name or adding one, and every other
-configured sensor is rendered as before (``streams.render_sensor_frames``). The contract each group
-honours is ``docs/sensor-plugin.md``; in short:
+:func:`import_streams` reads every stream of one ``sensor_imports`` entry (``config.SensorImport``)
+and builds each group with the kind's constructor of :mod:`.contract`, the one the renderers use:
+the same variables, dims and attrs keys as a rendered stream, with what a bag cannot hold (depth,
+labels, noise model) filled with the contract's absent values. The sensing stage that calls it is
+:func:`.sensor_frames.build_sensor_frames`; the contract is ``docs/sensor-plugin.md``. In short:
 
 - ``time``: int64 ns on the shared clock, ``stamp - time_origin + time_offset_s`` (the header stamps
   or the bag's record times, as configured); the stamps are recorded, not sampled at a rate; messages
   outside the session ``[0, duration]`` are dropped and counted; ``header_stamp_ns`` and
   ``record_time_ns`` keep both original stamps of every message kept.
-- the embedded variable names, dims, dtypes and units: ``rgb`` (time, y, x, channel) uint8;
-  LiDAR ``points_m``, ``range_m``, ``valid`` per (time, point) since a recorded cloud is a list of
-  points, not a ring x azimuth grid; IMU ``linear_acceleration_mps2`` (specific force) and
-  ``angular_velocity_radps``; GPS ``latitude_deg``, ``longitude_deg``, ``altitude_m``.
+- LiDAR: a PointCloud2 row is a ring and its column an azimuth (an unorganised cloud is one ring),
+  padded with NaN to the largest cloud; fields other than ``x y z intensity`` are kept as
+  ``field_<name>``.
 - poses: ``position_m`` / ``orientation_xyzw`` (and GPS ``position_enu_m``) are the scene's
   trajectory at the message times composed with the mount, exactly as for rendered streams; the mount
   comes from the config or from the bag's /tf_static and /tf (``extrinsics: tf``).
-- provenance attrs: ``source_file``, ``source_format``, ``source_topic``, ``source_message_type``,
-  ``source_frame_id`` (the messages' own frame ids), ``source_stamp``, ``time_origin_ns``,
-  ``extrinsics_source``; weather is not applied to a recorded stream.
+- provenance attrs (``source_*``, ``time_origin*``, ``num_messages_*``, ``extrinsics_source``):
+  :func:`.contract.stream_attrs`; weather is not applied to a recorded stream.
 """
 
 from __future__ import annotations
@@ -33,44 +31,16 @@ from scipy.spatial.transform import Rotation
 from simart_pipeline import clock, frames
 from simart_pipeline.config import BaseStation, ImportedStream, SceneConfig, SensorImport
 from simart_pipeline.mobility.bags import Bag, BagError, frame_name, read_tf, stamp_ns, time_origin_ns
-from simart_pipeline.vocabulary import AXES
-from simart_pipeline.vocabulary import QUATERNION_COMPONENTS as QUAT
+from simart_pipeline.sensing import contract
 from simart_pipeline.sensing import ros_messages as rm
-from simart_pipeline.sensing.streams import device_poses, render_sensor_frames
+from simart_pipeline.sensing.streams import device_kind, device_poses
 
 MESSAGE_TYPES = {"camera": (rm.IMAGE, rm.COMPRESSED_IMAGE), "lidar": (rm.POINT_CLOUD2,), "imu": (rm.IMU,),
                  "gps": (rm.NAV_SAT_FIX,)}
-TIME_SAMPLING = "recorded message stamps, not sampled at a fixed rate"
-NO_WEATHER = "none: a recorded stream is imported as recorded, the same in every weather"
 
 
 class StreamImportError(BagError):
     """A stream that cannot be imported; the message names the file and the topic."""
-
-
-def build_sensor_frames(meshes, traj: xr.Dataset, cfg: SceneConfig, weather: str,
-                        scene_dir: str | Path | None) -> xr.DataTree:
-    """Imported streams from ``cfg.sensor_imports`` plus every other sensor rendered: one tree with a
-    group per ``/<device>/<sensor>`` (``meshes`` is used only when a camera or LiDAR is rendered)."""
-    imported = {(s.device, s.sensor) for imp in cfg.sensor_imports for s in imp.streams}
-    if imported and scene_dir is None:
-        raise ValueError(f"scene {cfg.name}: imported sensor streams need the scene directory")
-
-    def keep(dev):
-        return tuple(s for s in dev.sensors if (dev.name, s.name) not in imported)
-
-    rendered_cfg = cfg.model_copy(update={
-        "platforms": tuple(p.model_copy(update={"sensors": keep(p)}) for p in cfg.platforms),
-        "base_stations": tuple(b.model_copy(update={"sensors": keep(b)}) for b in cfg.base_stations)})
-    tree = render_sensor_frames(meshes, traj, rendered_cfg, weather)
-    if not imported:
-        return tree
-    groups = {node.path: node.to_dataset() for node in tree.subtree if node.has_data}
-    for imp in cfg.sensor_imports:
-        groups.update(import_streams(imp, cfg, traj, scene_dir, weather))
-    out = xr.DataTree.from_dict(groups)
-    out.attrs.update(tree.attrs, imported_streams=sorted(f"/{d}/{s}" for d, s in imported))
-    return out
 
 
 def import_streams(imp: SensorImport, cfg: SceneConfig, traj: xr.Dataset | None, scene_dir: str | Path,
@@ -118,7 +88,7 @@ def _decode(msgtype: str, msg):
     if msgtype in (rm.IMAGE, rm.COMPRESSED_IMAGE):
         return rm.image_rgb(msg, msgtype)
     if msgtype == rm.POINT_CLOUD2:
-        return rm.point_cloud_array(msg)
+        return rm.point_cloud_array(msg), int(msg.height), int(msg.width)
     if msgtype == rm.IMU:
         return (list(_v(msg.linear_acceleration)), list(_v(msg.angular_velocity)),
                 [msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w],
@@ -184,213 +154,115 @@ def _stream_dataset(st: ImportedStream, imp: SensorImport, cfg: SceneConfig, tra
     m_pos, m_rot, extrinsics = _mount(st, cfg, device, tf, rows[0][2], int(stamps[idx[0]]), path)
     pos_b, rot_b, _ = device_poses(device, traj, t_ns)
     pos_s, rot_s = (pos_b + rot_b.apply(m_pos)).reshape(-1, 3), rot_b * m_rot
+    stamps_kept = dict(header_stamp_ns=[r[0] for r in rows], record_time_ns=[r[1] for r in rows])
     if st.kind == "camera":
-        ds = _camera(payloads, info, pos_s, rot_s * frames.OPTICAL_TO_BODY, where)
+        ds = _camera(t_ns, stamps_kept, payloads, info, pos_s, rot_s * frames.OPTICAL_TO_BODY, where)
     elif st.kind == "lidar":
-        ds = _lidar(payloads, pos_s, rot_s)
+        ds = _lidar(t_ns, stamps_kept, payloads, pos_s, rot_s)
     elif st.kind == "imu":
-        ds = _imu(payloads, rot_s)
+        ds = _imu(t_ns, stamps_kept, payloads, rot_s)
     else:
-        ds = _gps(payloads, pos_s, cfg)
-    coords = {"time": ("time", t_ns.astype(np.int64), dict(
-        units="ns", long_name="simulated time since session start (recorded message stamps)"))}
-    coords.update({k: v for k, v in (("axis", AXES), ("quaternion", QUAT)) if k in ds.dims})
-    ds = ds.assign_coords(coords)
-    ds["header_stamp_ns"] = ("time", np.array([r[0] for r in rows], np.int64),
-                             dict(units="ns", long_name="the message's header stamp, as recorded"))
-    ds["record_time_ns"] = ("time", np.array([r[1] for r in rows], np.int64),
-                            dict(units="ns", long_name="the bag's record time of the message"))
-    optical = st.kind == "camera"
-    mount_rpy = m_rot.as_euler("xyz", degrees=True)
-    ds.attrs.update({
-        "device": device.name,
-        "device_kind": "base_station" if isinstance(device, BaseStation) else "platform",
-        "sensor": st.sensor, "sensor_kind": st.kind,
-        "frame_id": frames.sensor_frame(device.name, st.sensor, optical=optical),
-        "parent_frame_id": frames.base_link(device.name),
-        "sensor_frame_id": frames.sensor_frame(device.name, st.sensor),
-        "mount_translation_m": m_pos.tolist(), "mount_rpy_deg": mount_rpy.tolist(),
-        "mount_quaternion_xyzw": m_rot.as_quat().tolist(),
-        "mount_comment": "pose of sensor_frame_id in parent_frame_id: translation (m) and roll about x, "
-                         "pitch about y, yaw about z (deg, extrinsic xyz)",
-        "quaternion_order": frames.QUATERNION_ORDER,
-        "source": "imported from a bag (docs/sensor-plugin.md)",
-        "source_file": imp.path, "source_format": fmt, "source_topic": st.topic,
-        "source_message_type": msgtype, "source_frame_id": ", ".join(source_frames),
-        "source_stamp": "message header stamps" if imp.stamp == "header" else "bag record times",
-        "time_origin": str(imp.time_origin), "time_origin_ns": int(origin),
-        "time_offset_s": imp.time_offset_s, "time_sampling": TIME_SAMPLING,
-        "num_messages_in_bag": len(stamps), "num_messages_outside_session": int((~inside).sum()),
-        "num_repeated_stamps_dropped": int((~first).sum()),
-        "mean_rate_hz": float((len(t_ns) - 1) / (t_ns[-1] - t_ns[0]) * 1e9) if len(t_ns) > 1 else 0.0,
-        "extrinsics_source": extrinsics,
-        "pose_source": "the scene's trajectory at the message times composed with the mount",
-        "weather": weather, "weather_model": NO_WEATHER,
-    })
-    if optical:
-        ds.attrs["optical_to_sensor_quaternion_xyzw"] = frames.OPTICAL_TO_BODY.as_quat().tolist()
-        ds.attrs["optical_comment"] = ("frame_id is the optical frame (z forward, x right, y down), "
-                                       "rotated from sensor_frame_id by optical_to_sensor_quaternion_xyzw")
+        ds = _gps(t_ns, stamps_kept, payloads, pos_s, cfg)
+    ds.attrs.update(contract.stream_attrs(
+        device.name, device_kind(device), st.sensor, st.kind, t_ns, mount_translation_m=m_pos.tolist(),
+        mount_rpy_deg=m_rot.as_euler("xyz", degrees=True).tolist(), mount_rotation=m_rot,
+        weather=contract.weather_attrs(weather, applied=False),
+        extrinsics_source=extrinsics,
+        pose_source="the scene's trajectory at the message times composed with the mount",
+        provenance={
+            "source": contract.IMPORTED, "source_file": imp.path, "source_format": fmt,
+            "source_topic": st.topic, "source_message_type": msgtype,
+            "source_frame_id": ", ".join(source_frames),
+            "source_stamp": "message header stamps" if imp.stamp == "header" else "bag record times",
+            "time_origin": str(imp.time_origin), "time_origin_ns": int(origin),
+            "time_offset_s": imp.time_offset_s, "num_messages_in_bag": len(stamps),
+            "num_messages_outside_session": int((~inside).sum()),
+            "num_repeated_stamps_dropped": int((~first).sum())}))
     return ds
 
 
-def _camera(payloads, info, position_m, rotation, where) -> xr.Dataset:
+def _camera(t_ns, stamps, payloads, info, position_m, rotation, where) -> xr.Dataset:
     shapes = {p[0].shape for p in payloads}
     if len(shapes) > 1:
         raise StreamImportError(f"{where}: the images change size ({', '.join(map(str, sorted(shapes)))})")
     rgb = np.stack([p[0] for p in payloads])
     n, h, w, _ = rgb.shape
-    ds = xr.Dataset({
-        "rgb": (("time", "y", "x", "channel"), rgb,
-                dict(units="1", long_name="colour image, 8-bit as recorded (sRGB assumed)",
-                     source_encoding=", ".join(sorted({p[1] for p in payloads})))),
-        "position_m": (("time", "axis"), position_m,
-                       dict(units="m", long_name="optical frame origin in world (ENU)")),
-        "orientation_xyzw": (("time", "quaternion"), rotation.as_quat().reshape(n, 4),
-                             dict(units="1", long_name="unit quaternion rotating the optical frame into "
-                                                       "world, scalar last")),
-    }, coords={"channel": ["r", "g", "b"]})
-    ds["rgb"].encoding["chunks"] = (1, h, w, 3)
-    ds.attrs.update(width_px=w, height_px=h, pose_model="pose at the image stamp")
-    if info is None:
-        ds.attrs["projection"] = "unknown: no camera_info_topic configured"
-        return ds
-    if (info["width_px"], info["height_px"]) not in ((w, h), (0, 0)):
-        raise StreamImportError(f"{where}: CameraInfo is {info['width_px']}x{info['height_px']} but the images "
-                           f"are {w}x{h}")
-    k = info["camera_matrix"]
-    ds["camera_matrix"] = (("row", "col"), k, dict(
-        units="px", long_name="pinhole intrinsics K from CameraInfo (OpenCV convention: pixel centres "
-                              "at integer coordinates)"))
-    ds["distortion_coefficients"] = ("distortion_coefficient", info["distortion_coefficients"], dict(
-        units="1", long_name=f"lens distortion coefficients, {info['distortion_model']} model (CameraInfo D)"))
-    ds.attrs.update(horizontal_fov_deg=float(np.degrees(2 * np.arctan(w / (2 * k[0, 0])))),
-                    projection=f"pinhole with {info['distortion_model'] or 'no'} lens distortion "
-                               "(distortion_coefficients); images as recorded, not rectified")
-    return ds
+    model = {"pose_model": "pose at the image stamp", "projection": "unknown: no camera_info_topic configured"}
+    k, lens = None, {}
+    if info is not None:
+        if (info["width_px"], info["height_px"]) not in ((w, h), (0, 0)):
+            raise StreamImportError(f"{where}: CameraInfo is {info['width_px']}x{info['height_px']} but the "
+                                    f"images are {w}x{h}")
+        k = info["camera_matrix"]
+        lens = dict(distortion_model=info["distortion_model"], distortion_coefficients=info["distortion_coefficients"])
+        model.update(horizontal_fov_deg=contract.horizontal_fov_deg(k, w),
+                     projection=f"pinhole with {info['distortion_model'] or 'no'} lens distortion "
+                                "(distortion_coefficients); images as recorded, not rectified")
+    return contract.camera_stream(t_ns, rgb, position_m, rotation.as_quat().reshape(n, 4), camera_matrix=k,
+                                  source_encoding=", ".join(sorted({p[1] for p in payloads})),
+                                  shading_model="none: as recorded", model=model, **lens, **stamps)
 
 
-def _padded(arrays: list[np.ndarray], fill, dtype) -> np.ndarray:
-    out = np.full((len(arrays), max(len(a) for a in arrays)) + arrays[0].shape[1:], fill, dtype)
-    for i, a in enumerate(arrays):
-        out[i, :len(a)] = a
+def _grid(clouds: list[np.ndarray], shape: tuple[int, int, int], fill, dtype) -> np.ndarray:
+    """Clouds [rows, columns, ...] into one array [time, ring, azimuth, ...] padded with ``fill``."""
+    out = np.full(shape + clouds[0].shape[2:], fill, dtype)
+    for i, c in enumerate(clouds):
+        out[i, :c.shape[0], :c.shape[1]] = c
     return out
 
 
-def _lidar(payloads, position_m, rotation) -> xr.Dataset:
-    xyz_dtype = np.result_type(*[payloads[0].dtype[c].base for c in "xyz"], np.float32)
-    xyz = [np.stack([p[c].astype(xyz_dtype) for c in "xyz"], axis=-1) for p in payloads]
-    points = _padded(xyz, np.nan, xyz_dtype)
-    count = np.array([len(p) for p in payloads], np.int64)
-    present = np.arange(points.shape[1])[None, :] < count[:, None]
+def _lidar(t_ns, stamps, payloads, position_m, rotation) -> xr.Dataset:
+    clouds = [p.reshape(h, w) for p, h, w in payloads]
+    first = clouds[0].dtype
+    shape = (len(clouds), max(c.shape[0] for c in clouds), max(c.shape[1] for c in clouds))
+    xyz_dtype = np.result_type(*[first[c].base for c in "xyz"], np.float32)
+    xyz = [np.stack([c[f].astype(xyz_dtype) for f in "xyz"], axis=-1) for c in clouds]
+    points = _grid(xyz, shape, np.nan, xyz_dtype)
+    present = _grid([np.ones(c.shape, bool) for c in clouds], shape, False, bool)
     valid = present & np.isfinite(points).all(axis=-1)
     points = np.where(valid[..., None], points, np.nan).astype(xyz_dtype)
-    n = len(payloads)
-    ds = xr.Dataset({
-        "points_m": (("time", "point", "axis"), points,
-                     dict(units="m", long_name="return point in the sensor frame (x fwd, y left, z up), "
-                                               "as recorded", nan_means="no point: beyond point_count, or "
-                                               "a non-finite point in the message (see valid)")),
-        "range_m": (("time", "point"), np.linalg.norm(points, axis=-1).astype(xyz_dtype),
-                    dict(units="m", long_name="distance of the point from the sensor origin",
-                         nan_means="no point (see valid)")),
-        "valid": (("time", "point"), valid,
-                  dict(units="1", long_name="a finite point of the message (points_m, range_m defined)")),
-        "point_count": ("time", count, dict(units="1", long_name="points in the message (height x width), "
-                                                                 "finite or not")),
-        "position_m": (("time", "axis"), position_m,
-                       dict(units="m", long_name="sensor frame origin in world (ENU) at the cloud's stamp")),
-        "orientation_xyzw": (("time", "quaternion"), rotation.as_quat().reshape(n, 4),
-                             dict(units="1", long_name="unit quaternion rotating the sensor frame into "
-                                                       "world at the cloud's stamp, scalar last")),
-    })
-    common = [f for f in payloads[0].dtype.names if all(f in p.dtype.names for p in payloads)]
+    common = [f for f in first.names if all(f in c.dtype.names for c in clouds)]
+    fields = {}
     for name in common:
-        base = payloads[0].dtype[name]
+        base = first[name]
         if name in "xyz" or base.shape:  # a multi-count field is not part of the contract: skipped
             continue
-        floating = np.issubdtype(base, np.floating)
-        arr = _padded([p[name] for p in payloads], np.nan if floating else 0, base.newbyteorder("="))
-        attrs = dict(units="1", long_name=f"PointCloud2 field {name!r} as recorded (sensor-specific scale)",
-                     comment="defined where point < point_count")
-        if floating:
-            attrs["nan_means"] = "no point (beyond point_count)"
-        ds["intensity" if name == "intensity" else f"field_{name}"] = (("time", "point"), arr, attrs)
-    for name in ds.data_vars:
-        if ds[name].dims[:2] == ("time", "point"):
-            ds[name].encoding["chunks"] = (1,) + ds[name].shape[1:]
-    ds.attrs.update(point_fields=common, layout="unorganised: point = row * width + "
-                    "column of the message's cloud, padded with NaN to the largest cloud",
-                    pose_model="whole cloud from the pose at its stamp (no motion compensation)")
-    return ds
+        fill = np.nan if np.issubdtype(base, np.floating) else 0
+        fields[name] = _grid([c[name] for c in clouds], shape, fill, base.newbyteorder("="))
+    return contract.lidar_stream(
+        t_ns, np.linalg.norm(points, axis=-1).astype(xyz_dtype), points, valid, position_m,
+        rotation.as_quat().reshape(len(clouds), 4), point_count=[c.size for c in clouds],
+        intensity=fields.pop("intensity", None), fields=fields, **stamps,
+        model={"channels": shape[1], "horizontal_samples": shape[2], "point_fields": common,
+               "layout": "a message's row is a ring and its column an azimuth (an unorganised cloud, height 1, "
+                         "is one ring), padded with NaN to the largest cloud",
+               "pose_model": "whole cloud from the pose at its stamp (no motion compensation)",
+               "beam_model": "as recorded"})
 
 
-def _imu(payloads, rotation) -> xr.Dataset:
+def _imu(t_ns, stamps, payloads, rotation) -> xr.Dataset:
     n = len(payloads)
     acc, gyr = (np.array([p[i] for p in payloads], np.float64) for i in (0, 1))
     rep = np.array([p[2] for p in payloads], np.float64)
     cov = [np.stack([p[i] for p in payloads]).reshape(n, 3, 3) for i in (3, 4, 5)]
     has_orientation = cov[2][:, 0, 0] != -1  # sensor_msgs/Imu: covariance[0] = -1 means no estimate
     rep[~has_orientation] = np.nan
-    ds = xr.Dataset({
-        "linear_acceleration_mps2": (("time", "axis"), acc, dict(
-            units="m s-2", long_name="specific force in the IMU frame (gravity reaction included, +g up "
-                                     "at rest), as recorded")),
-        "angular_velocity_radps": (("time", "axis"), gyr, dict(
-            units="rad s-1", long_name="angular velocity of the IMU frame, expressed in the IMU frame, "
-                                       "as recorded")),
-        "orientation_xyzw": (("time", "quaternion"), rotation.as_quat().reshape(n, 4), dict(
-            units="1", long_name="unit quaternion rotating the IMU frame into world, from the scene's "
-                                 "trajectory and the mount, scalar last")),
-        "reported_orientation_xyzw": (("time", "quaternion"), rep, dict(
-            units="1", long_name="orientation the IMU reported: its frame into the IMU's own reference "
-                                 "frame, scalar last, as recorded",
-            nan_means="the message carries no orientation (orientation_covariance[0] = -1)")),
-        "linear_acceleration_covariance": (("time", "row", "col"), cov[0], dict(
-            units="m2 s-4", long_name="covariance of linear_acceleration_mps2, as recorded (all 0: unknown)")),
-        "angular_velocity_covariance": (("time", "row", "col"), cov[1], dict(
-            units="rad2 s-2", long_name="covariance of angular_velocity_radps, as recorded (all 0: unknown)")),
-        "reported_orientation_covariance": (("time", "row", "col"), cov[2], dict(
-            units="rad2", long_name="covariance of reported_orientation_xyzw about x, y, z, as recorded "
-                                    "(-1 in the first element: no orientation)")),
-    })
-    ds.attrs.update(noise_model="as recorded", gravity_convention="sensor_msgs/Imu: specific force, "
-                    "+g up at rest")
-    return ds
+    return contract.imu_stream(
+        t_ns, acc, gyr, rotation.as_quat().reshape(n, 4), linear_acceleration_covariance=cov[0],
+        angular_velocity_covariance=cov[1], reported_orientation_xyzw=rep, reported_orientation_covariance=cov[2],
+        model={"noise_model": "as recorded", "lever_arm": "as recorded: the IMU measures at its own origin"},
+        **stamps)
 
 
-def _gps(payloads, position_m, cfg: SceneConfig) -> xr.Dataset:
+def _gps(t_ns, stamps, payloads, position_m, cfg: SceneConfig) -> xr.Dataset:
     o = cfg.origin
     lla = np.array([p[:3] for p in payloads], np.float64)
     status = np.array([p[3] for p in payloads], np.int8)
     fix = (status >= 0) & np.isfinite(lla).all(axis=1)  # NavSatStatus.STATUS_NO_FIX = -1
     lla[~fix] = np.nan
     enu = frames.geodetic_to_enu(lla, o.latitude_deg, o.longitude_deg, o.altitude_m)
-    nan = "no fix (NavSatStatus -1, or a non-finite value in the message)"
-    ds = xr.Dataset({
-        "latitude_deg": ("time", lla[:, 0], dict(units="degrees_north", long_name="WGS84 latitude of the fix, "
-                                                 "as recorded", standard_name="latitude", nan_means=nan)),
-        "longitude_deg": ("time", lla[:, 1], dict(units="degrees_east", long_name="WGS84 longitude of the fix, "
-                                                  "as recorded", standard_name="longitude", nan_means=nan)),
-        "altitude_m": ("time", lla[:, 2], dict(units="m", long_name="WGS84 ellipsoidal height of the fix, "
-                                               "as recorded", nan_means=nan)),
-        "fix_enu_m": (("time", "axis"), enu, dict(units="m", long_name="the fix in world (ENU about the "
-                                                  "scene origin)", nan_means=nan)),
-        "fix_valid": ("time", fix, dict(units="1", long_name="the message holds a fix")),
-        "fix_status": ("time", status, dict(units="1", long_name="sensor_msgs/NavSatStatus status",
-                                            flag_values=[-1, 0, 1, 2],
-                                            flag_meanings="no_fix fix sbas_fix gbas_fix")),
-        "fix_service": ("time", np.array([p[4] for p in payloads], np.uint16), dict(
-            units="1", long_name="sensor_msgs/NavSatStatus service", flag_masks=[1, 2, 4, 8],
-            flag_meanings="gps glonass compass galileo")),
-        "position_covariance_m2": (("time", "row", "col"), np.stack([p[5] for p in payloads]).reshape(-1, 3, 3),
-                                   dict(units="m2", long_name="covariance of the fix in ENU, as recorded")),
-        "position_covariance_type": ("time", np.array([p[6] for p in payloads], np.uint8), dict(
-            units="1", long_name="sensor_msgs/NavSatFix position_covariance_type", flag_values=[0, 1, 2, 3],
-            flag_meanings="unknown approximated diagonal_known known")),
-        "position_enu_m": (("time", "axis"), position_m, dict(
-            units="m", long_name="antenna position in world (ENU) from the scene's trajectory and the mount")),
-    })
-    ds.attrs.update(origin_latitude_deg=o.latitude_deg, origin_longitude_deg=o.longitude_deg,
-                    origin_altitude_m=o.altitude_m, noise_model="as recorded")
-    return ds
+    return contract.gps_stream(
+        t_ns, lla[:, 0], lla[:, 1], lla[:, 2], enu, position_m, o, fix_valid=fix, fix_status=status,
+        fix_service=[p[4] for p in payloads],
+        position_covariance_m2=np.stack([p[5] for p in payloads]).reshape(-1, 3, 3),
+        position_covariance_type=[p[6] for p in payloads], model={"noise_model": "as recorded"}, **stamps)

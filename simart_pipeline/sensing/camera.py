@@ -22,7 +22,9 @@ import xarray as xr
 from scipy.spatial.transform import Rotation
 
 from simart_pipeline.config import Camera
-from simart_pipeline.scene.meshes import SceneMeshes, SemanticClass, semantic_flag_attrs
+from simart_pipeline.scene.meshes import SceneMeshes
+from simart_pipeline.vocabulary import SemanticClass
+from simart_pipeline.sensing import contract
 from simart_pipeline.sensing.raycast import RayBundle, RayCaster
 from simart_pipeline.sensing.weather import WeatherModel
 
@@ -264,43 +266,9 @@ def render_camera(caster: RayCaster, cam: Camera, times_ns: np.ndarray, position
             dn += rng.standard_normal(dn.shape, dtype=np.float32) * np.float32(wx.pixel_noise_std_dn)
         rgb[i] = np.clip(np.rint(dn), 0, 255).astype(np.uint8)
 
-    quat = rotation.as_quat().reshape(n_t, 4)
-    ds = xr.Dataset(
-        {
-            "rgb": (("time", "y", "x", "channel"), rgb,
-                    dict(units="1", long_name="colour image, sRGB-encoded 8-bit",
-                         shading_model=SHADING_MODEL)),
-            "depth_m": (("time", "y", "x"), depth,
-                        dict(units="m", long_name="z-depth of the visible surface along the optical axis",
-                             nan_means="no surface within max_depth_m along the pixel's ray (sky)",
-                             max_depth_m=cam.max_depth_m)),
-            "depth_valid": (("time", "y", "x"), ~np.isnan(depth),
-                            dict(units="1", long_name="the pixel sees a surface within max_depth_m "
-                                           "(depth_m, semantic_class and instance_id are defined)")),
-            "semantic_class": (("time", "y", "x"), sem,
-                               dict(units="1", long_name="semantic class of the visible surface",
-                                    **semantic_flag_attrs(),
-                                    comment="0 (unlabeled) where no surface is seen: sky or beyond "
-                                            "max_depth_m")),
-            "instance_id": (("time", "y", "x"), inst,
-                            dict(units="1", long_name="source feature id (OSM or generated id) of the "
-                                                      "visible surface",
-                                 comment="0 where no surface is seen; source ids are positive")),
-            "camera_matrix": (("row", "col"), intrinsics(cam),
-                              dict(units="px", long_name="pinhole intrinsics K (OpenCV convention: "
-                                                         "pixel centres at integer coordinates)")),
-            "position_m": (("time", "axis"), position_m.astype(np.float64),
-                           dict(units="m", long_name="optical frame origin in world (ENU)")),
-            "orientation_xyzw": (("time", "quaternion"), quat,
-                                 dict(units="1", long_name="unit quaternion rotating the optical frame "
-                                                           "into world, scalar last")),
-        },
-        coords={"channel": ["r", "g", "b"]},
-    )
-    for name, chunks in (("rgb", (1, h, w, 3)), ("depth_m", (1, h, w)), ("depth_valid", (1, h, w)),
-                         ("semantic_class", (1, h, w)), ("instance_id", (1, h, w))):
-        ds[name].encoding["chunks"] = chunks
-    ds.attrs.update(width_px=w, height_px=h, horizontal_fov_deg=cam.horizontal_fov_deg,
-                    max_depth_m=cam.max_depth_m, projection="pinhole, no lens distortion",
-                    pose_model="pose at the frame instant (global shutter, no motion blur)")
-    return ds
+    return contract.camera_stream(
+        times_ns, rgb, position_m, rotation.as_quat().reshape(n_t, 4), camera_matrix=intrinsics(cam),
+        depth_m=depth, semantic_class=sem, instance_id=inst, max_depth_m=cam.max_depth_m,
+        shading_model=SHADING_MODEL, source_encoding="none: rendered",
+        model=dict(horizontal_fov_deg=cam.horizontal_fov_deg, projection="pinhole, no lens distortion",
+                   pose_model="pose at the frame instant (global shutter, no motion blur)"))

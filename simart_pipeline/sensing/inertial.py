@@ -26,8 +26,9 @@ from scipy.spatial.transform import Rotation
 
 from simart_pipeline import frames
 from simart_pipeline.config import Gps, Imu, WorldOrigin
+from simart_pipeline.sensing import contract
+from simart_pipeline.vocabulary import STANDARD_GRAVITY_MPS2
 
-STANDARD_GRAVITY_MPS2 = 9.80665
 
 
 def render_imu(imu: Imu, times_ns: np.ndarray, poses: dict[str, np.ndarray],
@@ -43,24 +44,15 @@ def render_imu(imu: Imu, times_ns: np.ndarray, poses: dict[str, np.ndarray],
     acc = f_i + np.asarray(imu.accel_bias_mps2) + rng.normal(0.0, 1.0, (n, 3)) * imu.accel_noise_std_mps2
     gyr = w_i + np.asarray(imu.gyro_bias_radps) + rng.normal(0.0, 1.0, (n, 3)) * imu.gyro_noise_std_radps
     quat = (r_wb * r_bm).as_quat().reshape(n, 4)
-    ds = xr.Dataset({
-        "linear_acceleration_mps2": (("time", "axis"), acc,
-                                     dict(units="m s-2", long_name="specific force in the IMU frame "
-                                          "(gravity reaction included, +g up at rest) with bias and noise")),
-        "angular_velocity_radps": (("time", "axis"), gyr,
-                                   dict(units="rad s-1", long_name="angular velocity of the IMU frame, "
-                                        "expressed in the IMU frame, with bias and noise")),
-        "orientation_xyzw": (("time", "quaternion"), quat,
-                             dict(units="1", long_name="true unit quaternion rotating the IMU frame into "
-                                  "world, scalar last")),
-    })
-    ds.attrs.update(gravity_mps2=STANDARD_GRAVITY_MPS2,
-                    accel_noise_std_mps2=imu.accel_noise_std_mps2,
-                    gyro_noise_std_radps=imu.gyro_noise_std_radps,
-                    accel_bias_mps2=list(imu.accel_bias_mps2), gyro_bias_radps=list(imu.gyro_bias_radps),
-                    noise_model="constant bias + white Gaussian noise per sample (no random walk)",
-                    lever_arm="ignored in this version: accelerations are those of the base_link origin")
-    return ds
+    return contract.imu_stream(
+        times_ns, acc, gyr, quat,
+        linear_acceleration_covariance=contract.diagonal_covariance([imu.accel_noise_std_mps2] * 3, n),
+        angular_velocity_covariance=contract.diagonal_covariance([imu.gyro_noise_std_radps] * 3, n),
+        model=dict(gravity_mps2=STANDARD_GRAVITY_MPS2, accel_noise_std_mps2=imu.accel_noise_std_mps2,
+                   gyro_noise_std_radps=imu.gyro_noise_std_radps, accel_bias_mps2=list(imu.accel_bias_mps2),
+                   gyro_bias_radps=list(imu.gyro_bias_radps),
+                   noise_model="constant bias + white Gaussian noise per sample (no random walk)",
+                   lever_arm="ignored in this version: accelerations are those of the base_link origin"))
 
 
 def render_gps(gps: Gps, times_ns: np.ndarray, poses: dict[str, np.ndarray], origin: WorldOrigin,
@@ -73,19 +65,10 @@ def render_gps(gps: Gps, times_ns: np.ndarray, poses: dict[str, np.ndarray], ori
     std = np.array([gps.horizontal_noise_std_m, gps.horizontal_noise_std_m, gps.vertical_noise_std_m])
     noisy = true_enu + rng.normal(0.0, 1.0, (n, 3)) * std
     lla = frames.enu_to_geodetic(noisy, origin.latitude_deg, origin.longitude_deg, origin.altitude_m)
-    ds = xr.Dataset({
-        "latitude_deg": ("time", lla[:, 0], dict(units="degrees_north", long_name="WGS84 latitude of the fix",
-                                                 standard_name="latitude")),
-        "longitude_deg": ("time", lla[:, 1], dict(units="degrees_east", long_name="WGS84 longitude of the fix",
-                                                  standard_name="longitude")),
-        "altitude_m": ("time", lla[:, 2], dict(units="m", long_name="WGS84 ellipsoidal height of the fix")),
-        "position_enu_m": (("time", "axis"), true_enu,
-                           dict(units="m", long_name="true antenna position in world (ENU), no noise")),
-    })
-    ds.attrs.update(horizontal_noise_std_m=gps.horizontal_noise_std_m,
-                    vertical_noise_std_m=gps.vertical_noise_std_m,
-                    origin_latitude_deg=origin.latitude_deg, origin_longitude_deg=origin.longitude_deg,
-                    origin_altitude_m=origin.altitude_m,
-                    noise_model="white Gaussian per fix in ENU (per horizontal axis and vertical), "
-                                "before the geodetic conversion")
-    return ds
+    return contract.gps_stream(
+        times_ns, lla[:, 0], lla[:, 1], lla[:, 2], noisy, true_enu, origin, fix_valid=np.ones(n, bool),
+        fix_status=np.zeros(n, np.int8), fix_service=np.ones(n, np.uint16),
+        position_covariance_m2=contract.diagonal_covariance(std, n), position_covariance_type=np.full(n, 2, np.uint8),
+        model=dict(horizontal_noise_std_m=gps.horizontal_noise_std_m, vertical_noise_std_m=gps.vertical_noise_std_m,
+                   noise_model="white Gaussian per fix in ENU (per horizontal axis and vertical), "
+                               "before the geodetic conversion"))

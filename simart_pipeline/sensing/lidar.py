@@ -19,7 +19,7 @@ import xarray as xr
 from scipy.spatial.transform import Rotation
 
 from simart_pipeline.config import Lidar
-from simart_pipeline.scene.meshes import semantic_flag_attrs
+from simart_pipeline.sensing import contract
 from simart_pipeline.sensing.raycast import RayBundle, RayCaster
 from simart_pipeline.sensing.weather import WeatherModel
 
@@ -68,40 +68,13 @@ def render_lidar(caster: RayCaster, lidar: Lidar, times_ns: np.ndarray, position
         sem[i] = np.where(ret, caster.meshes.face_class[np.where(ret, face, 0)], 0)
     points = (rng_m[..., None] * d_s.reshape(rings, n_az, 3)[None].astype(np.float32)).astype(np.float32)
     el, az = beam_angles(lidar)
-    ds = xr.Dataset(
-        {
-            "range_m": (("time", "ring", "azimuth"), rng_m,
-                        dict(units="m", long_name="range of the beam's return (with range noise)",
-                             nan_means="no return: nothing within max_range_m, or dropped by the weather")),
-            "valid": (("time", "ring", "azimuth"), ~np.isnan(rng_m),
-                      dict(units="1", long_name="the beam returned (range_m, points_m and semantic_class defined)")),
-            "points_m": (("time", "ring", "azimuth", "axis"), points,
-                         dict(units="m", long_name="return point in the sensor frame (x fwd, y left, z up)",
-                              nan_means="no return (see range_m)")),
-            "semantic_class": (("time", "ring", "azimuth"), sem,
-                               dict(units="1", long_name="semantic class of the surface hit",
-                                    **semantic_flag_attrs(),
-                                    comment="0 (unlabeled) where there is no return")),
-            "position_m": (("time", "axis"), position_m.astype(np.float64),
-                           dict(units="m", long_name="sensor frame origin in world (ENU) at the sweep")),
-            "orientation_xyzw": (("time", "quaternion"), rotation.as_quat().reshape(n_t, 4),
-                                 dict(units="1", long_name="unit quaternion rotating the sensor frame into "
-                                                           "world at the sweep, scalar last")),
-        },
-        coords={
-            "elevation_rad": ("ring", el, dict(units="rad", long_name="beam elevation above the sensor's "
-                                                                      "x-y plane")),
-            "azimuth_rad": ("azimuth", az, dict(units="rad", long_name="beam azimuth from +x towards +y")),
-        },
-    )
-    for name in ("range_m", "valid", "semantic_class"):
-        ds[name].encoding["chunks"] = (1, rings, n_az)
-    ds["points_m"].encoding["chunks"] = (1, rings, n_az, 3)
-    ds.attrs.update(channels=rings, horizontal_samples=n_az,
-                    vertical_fov_deg=list(lidar.vertical_fov_deg), max_range_m=lidar.max_range_m,
-                    range_noise_std_m=lidar.range_noise_std_m, effective_range_noise_std_m=noise_std,
-                    dropout_probability=wx.lidar_dropout_probability,
-                    pose_model="whole sweep from the pose at the sweep's instant (no motion distortion "
-                               "within a sweep in this version)",
-                    beam_model="one ray per beam, first return, no divergence, no intensity")
-    return ds
+    return contract.lidar_stream(
+        times_ns, rng_m, points, ~np.isnan(rng_m), position_m, rotation.as_quat().reshape(n_t, 4),
+        point_count=np.full(n_t, rings * n_az, np.int64), elevation_rad=el, azimuth_rad=az, semantic_class=sem,
+        model=dict(channels=rings, horizontal_samples=n_az, vertical_fov_deg=list(lidar.vertical_fov_deg),
+                   max_range_m=lidar.max_range_m, range_noise_std_m=lidar.range_noise_std_m,
+                   effective_range_noise_std_m=noise_std, dropout_probability=wx.lidar_dropout_probability,
+                   pose_model="whole sweep from the pose at the sweep's instant (no motion distortion "
+                              "within a sweep in this version)",
+                   beam_model="one ray per beam, first return, no divergence, no intensity",
+                   layout="organised: ring x azimuth grid of the beams (elevation_rad, azimuth_rad)"))
