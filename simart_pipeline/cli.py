@@ -82,7 +82,7 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
     """Register the scene and materialise every asset partition of it; returns the store paths."""
     import dagster as dg
 
-    from simart_pipeline.assets import ALL_ASSETS
+    from simart_pipeline.assets import ALL_ASSETS, ALL_CHECKS
     from simart_pipeline.definitions import build_definitions
     from simart_pipeline.partitions import scene_partitions
 
@@ -107,7 +107,7 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
         label = key if isinstance(key, str) else "|".join(f"{k}={v}" for k, v in key.keys_by_dimension.items())
         t0 = time.perf_counter()
         progress(f"[{done + 1:>2}-{done + len(names):>2}/{total}] {', '.join(names)} ({label}) ...")
-        result = dg.materialize(ALL_ASSETS, selection=names, partition_key=key, instance=instance,
+        result = dg.materialize([*ALL_ASSETS, *ALL_CHECKS], selection=names, partition_key=key, instance=instance,
                                 resources=resources, run_config=run_config, raise_on_error=False)
         if not result.success:
             failures = [e for e in result.all_events if e.is_step_failure]
