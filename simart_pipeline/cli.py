@@ -114,7 +114,7 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
     computed, and why, or was already up to date."""
     import dagster as dg
 
-    from simart_pipeline.assets import ALL_ASSETS
+    from simart_pipeline.assets import ALL_ASSETS, ALL_CHECKS
     from simart_pipeline.definitions import build_definitions
     from simart_pipeline.partitions import scene_partitions
 
@@ -151,8 +151,9 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
             t0 = time.perf_counter()
             for name, why in stale.items():
                 progress(f"[{done + names.index(name) + 1:>2}/{total}] {name} ({label}): computing ({why})")
-            result = dg.materialize(ALL_ASSETS, selection=list(stale), partition_key=key, instance=instance,
-                                    resources=resources, run_config=run_config, raise_on_error=False)
+            result = dg.materialize([*ALL_ASSETS, *ALL_CHECKS], selection=list(stale), partition_key=key,
+                                    instance=instance, resources=resources, run_config=run_config,
+                                    raise_on_error=False)
             if not result.success:
                 failures = [e for e in result.all_events if e.is_step_failure]
                 msg = failures[0].step_failure_data.error.message.strip() if failures else "run failed"

@@ -2,7 +2,7 @@
 
 import dagster as dg
 
-from simart_pipeline.assets import ALL_ASSETS
+from simart_pipeline.assets import ALL_ASSETS, ALL_CHECKS
 from simart_pipeline.resources import ProjectResource, RayTracerResource, ZarrStoreIOManager
 
 
@@ -10,6 +10,7 @@ def build_definitions(data_root: str | None = None, scenes_root: str | None = No
     project = ProjectResource(**{k: v for k, v in (("data_root", data_root), ("scenes_root", scenes_root)) if v})
     return dg.Definitions(
         assets=ALL_ASSETS,
+        asset_checks=ALL_CHECKS,
         resources={
             "project": project,
             "ray_tracer": RayTracerResource(),

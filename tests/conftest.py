@@ -23,6 +23,24 @@ def tiny_built(tmp_path_factory):
     return cfg, geom, m, out
 
 
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory):
+    """tests/scenes/tiny materialised once through ``simart run``'s code path (every asset, its asset
+    checks, three weathers, two tiles): (data root, stores, instance, progress lines, config). Shared
+    by test_end_to_end.py and test_checks.py; tests that change the data work on a copy."""
+    import dagster as dg
+
+    from simart_pipeline.cli import materialize_scene
+    from simart_pipeline.config import load_scene_config
+
+    data = tmp_path_factory.mktemp("data")
+    instance = dg.DagsterInstance.ephemeral()
+    lines = []
+    out = materialize_scene(TESTS / "scenes" / "tiny", data, ["sunny", "night", "rainy"], ["r0c0", "r0c1"],
+                            instance=instance, progress=lines.append)
+    return data, out, instance, lines, load_scene_config(TESTS / "scenes" / "tiny")
+
+
 @pytest.fixture
 def tiny_scene(tmp_path) -> Path:
     """A writable copy of tests/scenes/tiny (tests may edit its scene.yaml)."""

@@ -8,22 +8,13 @@ import dagster as dg
 
 from simart_pipeline import stores
 from simart_pipeline.cli import materialize_scene
-from simart_pipeline.config import load_scene_config
 
 WEATHERS = ["sunny", "night", "rainy"]
-TILES = ["r0c0", "r0c1"]
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    from conftest import TESTS
-
-    data = tmp_path_factory.mktemp("data")
-    instance = dg.DagsterInstance.ephemeral()
-    lines = []
-    out = materialize_scene(TESTS / "scenes" / "tiny", data, WEATHERS, TILES, instance=instance,
-                            progress=lines.append)
-    return data, out, instance, lines, load_scene_config(TESTS / "scenes" / "tiny")
+def run(tiny_run):
+    return tiny_run  # conftest: materialised once per session, shared with test_checks.py
 
 
 def _all_finite_where_valid(ds: xr.Dataset):

@@ -1,3 +1,4 @@
+from simart_pipeline.assets.checks import ALL_CHECKS
 from simart_pipeline.assets.ckm import ckm_layers, ckm_map
 from simart_pipeline.assets.link import kpis
 from simart_pipeline.assets.radio import cirs
@@ -6,3 +7,5 @@ from simart_pipeline.assets.sensing import sensor_frames
 from simart_pipeline.assets.session import session
 
 ALL_ASSETS = [osm_extract, paired_meshes, trajectory, sensor_frames, cirs, kpis, ckm_layers, ckm_map, session]
+
+__all__ = ["ALL_ASSETS", "ALL_CHECKS"]

@@ -1,0 +1,127 @@
+"""Asset checks: the data contract asserted on every stage's partition as it is materialised.
+
+The logic is in :mod:`simart_pipeline.quality`; each check here reads the partition's store, calls
+one function and reports its result. Checks whose failure means wrong data are blocking: a failed
+one stops the asset's downstream assets in the same run. docs/design.md, "Checks".
+"""
+
+import warnings
+
+import dagster as dg
+
+from simart_pipeline import quality, stores
+from simart_pipeline.partitions import scene_partitions, scene_tile, scene_weather, split_key
+from simart_pipeline.resources import TREE_ASSETS, ProjectResource
+
+# Store assets and their partitions; every one gets the finite-values, clock and frame-id checks
+# (osm_extract has no time coordinate, so no clock check).
+STORE_ASSETS = {"osm_extract": scene_partitions, "trajectory": scene_partitions,
+                "sensor_frames": scene_weather, "cirs": scene_weather, "kpis": scene_weather,
+                "session": scene_weather}
+TIMELESS = {"osm_extract"}
+
+# Partitioned asset checks run per partition; Dagster 1.13 calls them a preview.
+warnings.filterwarnings("ignore", message="Specifying a partitions_def on an AssetCheckSpec",
+                        category=dg.PreviewWarning)
+
+
+def _key(context: dg.AssetCheckExecutionContext, partitions_def) -> tuple[str, str | None]:
+    key = context.partition_key
+    if isinstance(partitions_def, dg.MultiPartitionsDefinition) and not isinstance(key, dg.MultiPartitionKey):
+        key = partitions_def.get_partition_key_from_str(key)
+    return split_key(key)
+
+
+def _open(project: ProjectResource, asset: str, scene: str, sub: str | None):
+    return stores.open_store(stores.store_path(project.data_root, asset, scene, sub), tree=asset in TREE_ASSETS)
+
+
+def _result(r: quality.CheckResult, severity=dg.AssetCheckSeverity.ERROR, **extra) -> dg.AssetCheckResult:
+    meta = {k: v for k, v in {**r.metadata, **extra}.items() if v is not None}
+    if r.problems:
+        meta["first_problems"] = dg.MetadataValue.md("\n".join(f"- {p}" for p in r.problems))
+    return dg.AssetCheckResult(passed=r.passed, severity=severity, description=r.description, metadata=meta)
+
+
+def _store_checks(asset: str, partitions_def) -> list[dg.AssetChecksDefinition]:
+    def check(name: str, description: str, run):
+        @dg.asset_check(asset=asset, name=name, description=description, blocking=True,
+                        partitions_def=partitions_def)
+        def _check(context: dg.AssetCheckExecutionContext, project: ProjectResource) -> dg.AssetCheckResult:
+            scene, sub = _key(context, partitions_def)
+            obj = _open(project, asset, scene, sub)
+            return _result(run(obj, project.config(scene)), store=str(
+                stores.store_path(project.data_root, asset, scene, sub)))
+        return _check
+
+    out = [check("finite_values", "No inf anywhere; NaN only in float variables whose attrs carry "
+                 "nan_means (docs/data-contract.md, 'Missing means masked').",
+                 lambda obj, cfg: quality.finite_values(obj)),
+           check("known_frame_ids", "Every frame_id, parent_frame_id, sensor_frame_id attr (and frame "
+                 "ids in variables) is world or a frame of the scene config.",
+                 quality.known_frame_ids)]
+    if asset not in TIMELESS:
+        out.append(check("on_shared_clock", "Every stream's time is int64 ns, strictly increasing, within "
+                         "[0, duration]; streams sampled by the pipeline hold exactly the clock instants "
+                         "of their rate.", lambda obj, cfg: quality.on_shared_clock(obj, cfg, asset)))
+    return out
+
+
+@dg.asset_check(asset="cirs", blocking=True, partitions_def=scene_weather,
+                description="Passive channel: no valid path gains more than free space at the tx-rx "
+                            "distance times the arrays' largest element gains (+0.1 dB), nor arrives "
+                            "before the line of sight.")
+def passive_channel(context: dg.AssetCheckExecutionContext, project: ProjectResource) -> dg.AssetCheckResult:
+    scene, weather = _key(context, scene_weather)
+    return _result(quality.passive_channel(_open(project, "cirs", scene, weather)))
+
+
+def _tile_maps(project: ProjectResource, scene: str):
+    from simart_pipeline.ckm.maps import map_groups, map_path
+    from simart_pipeline.ckm.mosaic import open_map
+
+    cfg = project.config(scene)
+    return cfg, {name: open_map(map_path(project.data_root, scene, name)) for name in map_groups(cfg)}
+
+
+@dg.asset_check(asset="ckm_layers", partitions_def=scene_tile,
+                description="The tile is marked complete in every map of the scene; fractions of its "
+                            "cells masked (inside a building or outside the region) and empty (traced, "
+                            "no path from any station). A warning, not blocking.")
+def ckm_tile_complete(context: dg.AssetCheckExecutionContext, project: ProjectResource) -> dg.AssetCheckResult:
+    from simart_pipeline.ckm.grid import tile_slices
+
+    scene, tile = _key(context, scene_tile)
+    cfg = project.config(scene)
+    if tile_slices(cfg.ckm, tile) is None:
+        return _result(quality.ckm_tile({}, cfg, tile), dg.AssetCheckSeverity.WARN)
+    cfg, maps = _tile_maps(project, scene)
+    return _result(quality.ckm_tile(maps, cfg, tile), dg.AssetCheckSeverity.WARN)
+
+
+@dg.asset_check(asset="ckm_layers", blocking=True, partitions_def=scene_tile,
+                description="Passive map: per station and traced cell of the tile, path_gain_db is at "
+                            "most count x free space x the station's largest element gain (+0.1 dB), "
+                            "and toa_s is not before the line of sight.")
+def ckm_passive(context: dg.AssetCheckExecutionContext, project: ProjectResource) -> dg.AssetCheckResult:
+    from simart_pipeline.ckm.grid import tile_slices
+
+    scene, tile = _key(context, scene_tile)
+    cfg = project.config(scene)
+    sl = tile_slices(cfg.ckm, tile)
+    if sl is None:
+        return dg.AssetCheckResult(passed=True, description=f"tile {tile} is outside the scene's tiling",
+                                   metadata={"cells_checked": 0})
+    cfg, maps = _tile_maps(project, scene)
+    results = {name: quality.ckm_passive(ds, cfg, *sl) for name, ds in maps.items()}
+    problems = [f"map {n}: {p}" for n, r in results.items() for p in r.problems]
+    checked = sum(r.metadata["cells_checked"] for r in results.values())
+    margins = [r.metadata["worst_margin_db"] for r in results.values() if r.metadata.get("worst_margin_db") is not None]
+    meta = {"cells_checked": checked, "worst_margin_db": max(margins) if margins else None,
+            "tolerance_db": quality.GAIN_TOLERANCE_DB}
+    return _result(quality.CheckResult.of(problems, f"{checked} station-cell pairs in {len(maps)} map(s) "
+                                          "passive", meta))
+
+
+STORE_CHECKS = [c for asset, pd in STORE_ASSETS.items() for c in _store_checks(asset, pd)]
+ALL_CHECKS = [*STORE_CHECKS, passive_channel, ckm_tile_complete, ckm_passive]
