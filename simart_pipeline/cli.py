@@ -115,6 +115,7 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
     import dagster as dg
 
     from simart_pipeline.assets import ALL_ASSETS, ALL_CHECKS
+    from simart_pipeline.assets.versioning import FORCE_TAG
     from simart_pipeline.definitions import build_definitions
     from simart_pipeline.partitions import scene_partitions
 
@@ -153,7 +154,7 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
                 progress(f"[{done + names.index(name) + 1:>2}/{total}] {name} ({label}): computing ({why})")
             result = dg.materialize([*ALL_ASSETS, *ALL_CHECKS], selection=list(stale), partition_key=key,
                                     instance=instance, resources=resources, run_config=run_config,
-                                    raise_on_error=False)
+                                    raise_on_error=False, tags={FORCE_TAG: "true"} if force else None)
             if not result.success:
                 failures = [e for e in result.all_events if e.is_step_failure]
                 msg = failures[0].step_failure_data.error.message.strip() if failures else "run failed"

@@ -27,6 +27,7 @@ import numpy as np
 import xarray as xr
 
 from simart_pipeline import clock, frames
+from simart_pipeline.sensing.contract import IMPORTED
 from simart_pipeline.vocabulary import SPEED_OF_LIGHT_MPS
 
 MAX_PROBLEMS = 5  # problems listed in a result; the count says how many there were
@@ -98,8 +99,9 @@ def finite_values(obj: xr.Dataset | xr.DataTree) -> CheckResult:
 # -- the shared clock -------------------------------------------------------------------------------
 
 def is_imported(ds: xr.Dataset) -> bool:
-    """A stream imported from a recording (sensing/bag_import.py): its instants are the messages'."""
-    return "source_file" in ds.attrs or str(ds.attrs.get("source", "")).startswith("imported")
+    """A stream imported from a recording (sensing/bag_import.py): its instants are the messages'
+    (the stream contract's ``source`` attr, ``sensing.contract.IMPORTED``)."""
+    return ds.attrs.get("source") == IMPORTED
 
 
 def stream_rate_hz(group: str, ds: xr.Dataset, cfg, asset: str) -> float | None:

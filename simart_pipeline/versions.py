@@ -251,6 +251,21 @@ class VersionPlan:
             self._memo[key] = _digest(self.inputs(asset, sub))[:32]
         return self._memo[key]
 
+    def map_version(self, name: str) -> str:
+        """Version of one channel knowledge map (``name``: a set of radio materials, e.g. sunny):
+        the CKM code, the config the map reads with that set's materials only, and the scene's
+        meshes and geometry. A change of the rain materials leaves the dry map's version as it is."""
+        raw = config_slice(self.cfg, "ckm_layers", None)
+        raw["materials"] = _without(raw["materials"], "rain")
+        raw["weather_materials"] = self.cfg.materials.weather_table()[name]
+        return _digest({"map": name, "code_version": code_version("ckm_layers"), "config": raw,
+                        "source_files": source_files(self.cfg, "ckm_layers", self.scene_dir),
+                        "upstream": [self.data_version("paired_meshes"), self.data_version("osm_extract")]})[:32]
+
+    def map_tile_version(self, name: str, tile: str) -> int:
+        """Version of one tile of one map, as a non-negative int64 (stored per tile in the mosaic)."""
+        return int(_digest([self.map_version(name), tile])[:15], 16)
+
 
 def why_different(old: dict | None, new: dict) -> str:
     """A short cause: which inputs of a data version changed (``old``: the stored inputs)."""

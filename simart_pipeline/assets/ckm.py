@@ -10,7 +10,7 @@ from simart_pipeline import previews, provenance
 from simart_pipeline.ckm import mosaic
 from simart_pipeline.ckm.grid import parse_tile_key, scene_tiles, tile_slices
 from simart_pipeline.ckm.maps import map_groups, map_path, map_template, picture_layers
-from simart_pipeline.assets.versioning import code_version, versioned_result
+from simart_pipeline.assets.versioning import FORCE_TAG, code_version, versioned_result
 from simart_pipeline.partitions import from_scene, scene_partitions, scene_tile, split_key
 from simart_pipeline.resources import ProjectResource, RayTracerResource
 from simart_pipeline.scene import geometry
@@ -32,20 +32,27 @@ def ckm_layers(context: dg.AssetExecutionContext, project: ProjectResource, ray_
     if tile_slices(cfg.ckm, tile) is None:  # a static tile this scene's grid does not use
         return versioned_result(context, project, "ckm_layers", {"in_scene_tiling": False, "cells_traced": 0})
     geom = geometry.from_dataset(osm_extract.load())
-    meta = {"in_scene_tiling": True, "mode": cfg.ckm.mode}
+    meta = {"in_scene_tiling": True, "mode": cfg.ckm.mode, "cells_traced": 0}
     grid = tile_grid(cfg, geom, tile)
+    plan = project.version_plan(scene)
+    force = context.run.tags.get(FORCE_TAG) == "true"
     for name, weathers in map_groups(cfg).items():
+        path = map_path(project.data_root, scene, name)
+        map_version, tile_version = plan.map_version(name), plan.map_tile_version(name, tile)
+        meta[f"{name}_store"] = dg.MetadataValue.path(str(path))
+        meta[f"{name}_weathers"] = ", ".join(weathers)
+        if not force and mosaic.tile_is_current(path, tile, map_version, tile_version):
+            meta[f"{name}_tile"] = "up to date (its map's inputs did not change)"
+            continue
         # A tile whose cells are all masked loads no scene.
         radio = ray_tracer.load(paired_meshes, cfg, name) if grid.traced.any() else None
         ds = tile_layers(radio, cfg, geom, tile, project.scene_dir(scene), grid)
-        path = map_path(project.data_root, scene, name)
         spec, coords, attrs = map_template(cfg, ds, weathers,
                                            provenance.attrs(cfg, "ckm_layers", weathers=",".join(weathers)))
-        mosaic.ensure_template(path, cfg.ckm, spec, coords, attrs)
-        mosaic.write_tile(path, cfg.ckm, tile, ds)
-        meta[f"{name}_store"] = dg.MetadataValue.path(str(path))
+        mosaic.ensure_template(path, cfg.ckm, spec, coords, attrs, map_version)
+        mosaic.write_tile(path, cfg.ckm, tile, ds, tile_version)
+        meta[f"{name}_tile"] = "computed"
         meta["cells_traced"] = int(ds.attrs["cells_traced"])
-        meta[f"{name}_weathers"] = ", ".join(weathers)
     meta["compute_s"] = round(time.perf_counter() - t0, 2)
     meta["cells"] = int(grid.traced.size)
     if meta["cells_traced"]:

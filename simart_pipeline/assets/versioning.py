@@ -12,6 +12,9 @@ from simart_pipeline import versions
 from simart_pipeline.partitions import split_key
 
 
+FORCE_TAG = "simart/force"  # run tag: recompute even what is up to date inside an asset (CKM map tiles)
+
+
 def code_version(asset: str) -> str:
     return versions.code_version(asset)
 

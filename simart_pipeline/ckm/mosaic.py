@@ -7,7 +7,9 @@ tile written into its own chunk-aligned region.
   writes it aside and renames it into place. A template whose ``template_sha256`` (grid, layers,
   config) differs from the wanted one is replaced, since its tiles belong to another config.
 - A tile first marks itself incomplete, writes its region through ``stores.write_region`` (whole
-  chunks only, and the finite/NaN checks of every store), then marks itself complete. A failed
+  chunks only, and the finite/NaN checks of every store), records its version in
+  ``tile_data_version`` and then marks itself complete; a tile whose recorded version equals the
+  wanted one is up to date (:func:`tile_is_current`) and is not written again. A failed
   tile leaves the other tiles' chunks untouched and is simply rerun; any subset of tiles in any
   order gives the same map.
 """
@@ -44,14 +46,18 @@ def _has_template(path: Path, key: str) -> bool:
 
 
 def ensure_template(path: Path, ckm: Ckm, spec: dict[str, tuple[tuple[str, ...], object, dict]],
-                    coords: dict[str, tuple[tuple[str, ...], np.ndarray, dict]], attrs: dict) -> str:
+                    coords: dict[str, tuple[tuple[str, ...], np.ndarray, dict]], attrs: dict,
+                    map_version: str = "") -> str:
     """Write the mosaic template at ``path`` unless an identical one is there; returns its hash.
 
     :param spec: layer name -> (dims, dtype, attrs); dims end with ``GRID_DIMS`` (plus ``beam``)
     :param coords: name -> (dims, values, attrs) for every coordinate
+    :param map_version: what the map's content depends on (``versions.VersionPlan.map_version``);
+        the template's identity is its layout and this, not its provenance attrs, so that an edit
+        of the config that the map does not read leaves the map and its tiles in place.
     """
     path = Path(path)
-    key = template_sha256(spec, coords, attrs)
+    key = template_sha256(spec, coords, {"map_version": map_version})
     sizes = {d: len(v[1]) for d, v in coords.items() if v[0] == (d,)}
     cy, cx = chunk_shape(ckm)
     variables = {}
@@ -61,12 +67,29 @@ def ensure_template(path: Path, ckm: Ckm, spec: dict[str, tuple[tuple[str, ...],
     n_cols_tiles, n_rows_tiles = ckm.tiles
     variables["tile_complete"] = (("tile_row", "tile_col"), (n_rows_tiles, n_cols_tiles), bool, {
         "long_name": "the tile's cells are all written (false: missing or being written)"}, (1, 1))
-    stores.create_chunked_store(path, variables, coords, {**attrs, "template_sha256": key},
+    variables["tile_data_version"] = (("tile_row", "tile_col"), (n_rows_tiles, n_cols_tiles), np.int64, {
+        "long_name": "version of the inputs the tile was computed from (first 60 bits of a SHA-256); "
+                     "-1: not written"}, (1, 1))
+    stores.create_chunked_store(path, variables, coords,
+                                {**attrs, "template_sha256": key, "map_version": map_version},
                                 keep_existing=lambda p: _has_template(p, key))
     return key
 
 
-def write_tile(path: Path, ckm: Ckm, tile: str, ds: xr.Dataset) -> None:
+def tile_is_current(path: Path, tile: str, map_version: str, tile_version: int) -> bool:
+    """Whether the mosaic at ``path`` is the template of ``map_version`` and holds tile ``tile``
+    complete at ``tile_version``."""
+    path = Path(path)
+    try:
+        g = zarr.open_group(path, mode="r")
+        r, c = parse_tile_key(tile)
+        return (g.attrs.get("map_version") == map_version and bool(g["tile_complete"][r, c])
+                and int(g["tile_data_version"][r, c]) == tile_version)
+    except Exception:  # absent or unreadable: not current
+        return False
+
+
+def write_tile(path: Path, ckm: Ckm, tile: str, ds: xr.Dataset, tile_version: int = -1) -> None:
     """Write tile ``tile``'s layers (dims ``... height, y, x``) into their chunk-aligned region."""
     sl = tile_slices(ckm, tile)
     if sl is None:
@@ -78,6 +101,7 @@ def write_tile(path: Path, ckm: Ckm, tile: str, ds: xr.Dataset) -> None:
     done[r, c] = False
     stores.write_region(ds, path, {"y": sl[0], "x": sl[1]}, chunks={"y": cy, "x": cx},
                         sizes={"y": rows, "x": cols})
+    zarr.open_array(Path(path) / "tile_data_version", mode="r+")[r, c] = tile_version
     done[r, c] = True
 
 

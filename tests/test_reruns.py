@@ -1,0 +1,133 @@
+"""Reruns recompute only what changed: known answers on the tiny scene. An unchanged rerun writes no
+store; a sensor-rate edit rewrites exactly the sensing stores (and the sessions that hold them); a
+rain-material edit rewrites exactly the rainy radio stores; data versions depend on inputs alone."""
+
+from pathlib import Path
+
+import dagster as dg
+import pytest
+import yaml
+
+from simart_pipeline import versions
+from simart_pipeline.cli import materialize_scene
+from simart_pipeline.config import load_scene_config
+
+TILES = ["r0c0", "r0c1"]
+
+
+def _files(root: Path) -> dict[str, int]:
+    """Every file under the data root with its modification time (ns); the scene registry aside."""
+    return {str(p.relative_to(root)): p.stat().st_mtime_ns for p in root.rglob("*")
+            if p.is_file() and p.name != "scene_registry.json"}
+
+
+def _rewritten(before: dict, after: dict) -> set[str]:
+    """The stores (e.g. ``cirs/tiny/rainy.zarr``, ``paired_meshes/tiny/radio``) with a file written or removed."""
+    changed = {p for p in set(before) | set(after) if before.get(p) != after.get(p)}
+
+    def store(p):
+        parts = Path(p).parts
+        n = next((i + 1 for i, part in enumerate(parts) if part.endswith(".zarr")), 3)
+        return "/".join(parts[:n])
+
+    return {store(p) for p in changed}
+
+
+def _edit(scene_dir: Path, edit) -> None:
+    path = scene_dir / "scene.yaml"
+    raw = yaml.safe_load(path.read_text())
+    edit(raw)
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+
+
+@pytest.fixture(scope="module")
+def reruns(tmp_path_factory):
+    """Materialise a copy of tiny, then rerun it unchanged, after a sensor-rate edit and after a
+    rain-material edit; the files and progress lines of each step."""
+    import shutil
+
+    from conftest import TESTS
+
+    root = tmp_path_factory.mktemp("reruns")
+    scene = root / "tiny"
+    shutil.copytree(TESTS / "scenes" / "tiny", scene)
+    data = root / "data"
+    instance = dg.DagsterInstance.ephemeral()
+    steps = {}
+
+    def run(name, **kw):
+        lines = []
+        materialize_scene(scene, data, None, TILES, instance=instance, progress=lines.append, **kw)
+        steps[name] = (_files(data), lines)
+
+    run("first")
+    run("unchanged")
+    _edit(scene, lambda raw: raw["platforms"][0]["sensors"][0].update(rate_hz=4.0))
+    run("sensor_rate")
+    _edit(scene, lambda raw: raw.setdefault("materials", {}).update(
+        rain={"concrete": "wet_brick", "medium_dry_ground": "wet_ground"}))
+    run("rain_materials")
+    run("forced", force=True)
+    return data, scene, instance, steps
+
+
+def _computed(lines) -> set[str]:
+    return {line.split("] ")[1].split(":")[0] for line in lines if ": computing (" in line}
+
+
+def test_an_unchanged_rerun_computes_nothing_and_writes_no_store(reruns):
+    _, _, _, steps = reruns
+    first, unchanged = steps["first"], steps["unchanged"]
+    assert len(_computed(first[1])) == 3 + 3 * 4 + len(TILES) + 1  # every partition
+    assert _computed(unchanged[1]) == set()
+    assert unchanged[0] == first[0]  # not one file written, not one modification time changed
+    assert any("0 of 18 asset partitions computed, 18 up to date" in line for line in unchanged[1])
+
+
+def test_a_sensor_rate_edit_rewrites_exactly_the_sensing_stores(reruns):
+    _, _, _, steps = reruns
+    rewritten = _rewritten(steps["unchanged"][0], steps["sensor_rate"][0])
+    assert rewritten == {f"{a}/tiny/{w}.zarr" for a in ("sensor_frames", "session") for w in ("sunny", "night", "rainy")}
+    assert _computed(steps["sensor_rate"][1]) == {f"{a} (tiny|{w})" for a in ("sensor_frames", "session")
+                                                   for w in ("sunny", "rainy", "night")}
+    why = [line for line in steps["sensor_rate"][1] if "] sensor_frames (" in line]
+    assert len(why) == 3
+    assert all("its config changed" in line for line in why)
+
+
+def test_a_rain_material_edit_rewrites_exactly_the_rainy_radio_stores(reruns):
+    _, _, _, steps = reruns
+    rewritten = _rewritten(steps["sensor_rate"][0], steps["rain_materials"][0])
+    assert rewritten == {"cirs/tiny/rainy.zarr", "kpis/tiny/rainy.zarr", "session/tiny/rainy.zarr",
+                         "ckm/tiny/rainy.zarr"}
+    computed = _computed(steps["rain_materials"][1])
+    assert {"cirs (tiny|rainy)", "kpis (tiny|rainy)", "session (tiny|rainy)"} <= computed
+    assert not any("sunny" in c or "night" in c for c in computed)
+    assert "sensor_frames (tiny|rainy)" not in computed and "trajectory (tiny)" not in computed
+
+
+def test_force_recomputes_everything(reruns):
+    _, _, _, steps = reruns
+    assert len(_computed(steps["forced"][1])) == 18
+    rewritten = _rewritten(steps["rain_materials"][0], steps["forced"][0])
+    assert {"ckm/tiny/sunny.zarr", "cirs/tiny/sunny.zarr", "osm_extract/tiny.zarr"} <= rewritten
+
+
+def test_data_versions_depend_on_inputs_alone(reruns, tmp_path):
+    """The version Dagster records equals the one computed from the inputs before anything ran; a
+    second plan of the same inputs (another data root, another instance) gives the same versions."""
+    data, scene, instance, _ = reruns
+    cfg = load_scene_config(scene)
+    plan, again = versions.VersionPlan(cfg, scene), versions.VersionPlan(load_scene_config(scene), scene)
+    for asset, sub in (("osm_extract", None), ("trajectory", None), ("cirs", "rainy"), ("session", "night"),
+                       ("ckm_layers", "r0c1"), ("ckm_map", None)):
+        key = str(dg.MultiPartitionKey({"scene": "tiny", "weather" if sub in ("sunny", "rainy", "night")
+                                        else "tile": sub})) if sub else "tiny"
+        record = instance.fetch_materializations(
+            dg.AssetRecordsFilter(asset_key=dg.AssetKey(asset), asset_partitions=[key]), limit=1).records[0]
+        tags = record.event_log_entry.asset_materialization.tags
+        assert tags["dagster/data_version"] == plan.data_version(asset, sub) == again.data_version(asset, sub)
+        assert tags["dagster/code_version"] == versions.code_version(asset)
+    # sunny and night differ only in their weather; every input of a scene stage is the same
+    assert plan.inputs("cirs", "sunny")["upstream"] == plan.inputs("cirs", "night")["upstream"]
+    assert plan.data_version("sensor_frames", "sunny") != plan.data_version("sensor_frames", "night")
