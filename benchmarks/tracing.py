@@ -36,7 +36,7 @@ def main(argv=None) -> int:
     variant = engine.init()
     with tempfile.TemporaryDirectory() as tmp:
         geom, scene_xml = build_scene(cfg, scene_dir, Path(tmp) / "pm")
-        traj = build_trajectory(cfg, scene_dir)
+        traj = build_trajectory(cfg, scene_dir, geom=geom)
         t0 = time.perf_counter()
         radio = RadioScene.from_config(scene_xml, cfg)
         load_s = time.perf_counter() - t0
