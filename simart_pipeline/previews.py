@@ -80,17 +80,24 @@ def top_view(geom, cfg, traj=None, title: str = ""):
     return figure_markdown(fig)
 
 
-def heatmap(values: np.ndarray, x: np.ndarray, y: np.ndarray, geom, label: str, title: str = ""):
-    fig, ax = plt.subplots(figsize=(5, 4))
-    if values.size:
-        half = (x[1] - x[0]) / 2 if len(x) > 1 else 0.5
-        im = ax.imshow(values, origin="lower", extent=[x[0] - half, x[-1] + half, y[0] - half, y[-1] + half],
-                       cmap="viridis")
-        fig.colorbar(im, ax=ax, label=label)
-    _draw_source(ax, geom, building_colour="w", outline_only=True)
-    ax.set_title(title)
-    ax.set_xlabel("east (m)")
-    ax.set_ylabel("north (m)")
+def heatmaps(panels: list[tuple[str, np.ndarray, str]], x: np.ndarray, y: np.ndarray, geom, title: str = "",
+             ncols: int = 3):
+    """One figure of several maps over the building outlines: ``panels`` = (name, values [y, x], label)."""
+    nrows = max(1, -(-len(panels) // ncols))
+    fig, axes = plt.subplots(nrows, ncols, figsize=(4.2 * ncols, 3.4 * nrows), squeeze=False)
+    half = (x[1] - x[0]) / 2 if len(x) > 1 else 0.5
+    extent = [x[0] - half, x[-1] + half, y[0] - half, y[-1] + half] if len(x) and len(y) else None
+    for ax, (name, values, label) in zip(axes.ravel(), panels):
+        if values.size and extent is not None:
+            im = ax.imshow(values, origin="lower", extent=extent, cmap="viridis")
+            fig.colorbar(im, ax=ax, label=label, shrink=0.85)
+        _draw_source(ax, geom, building_colour="w", outline_only=True)
+        ax.set_title(name, fontsize=9)
+        ax.tick_params(labelsize=7)
+    for ax in axes.ravel()[len(panels):]:
+        ax.set_axis_off()
+    fig.suptitle(title)
+    fig.tight_layout()
     return figure_markdown(fig)
 
 

@@ -126,7 +126,8 @@ def test_ckm_maps_hold_every_layer_for_dry_and_wet_materials(run, capsys):
     events = instance.fetch_materializations(dg.AssetKey("ckm_map"), limit=1).records
     meta = events[0].asset_materialization.metadata
     assert meta["sunny_tiles_complete"].value == "2/2"
-    assert "data:image/png;base64," in meta["sunny_path_gain_db"].value
+    assert "data:image/png;base64," in meta["sunny_map"].value  # one picture of the key layers per map
+    assert not [k for k in meta if k.startswith("sunny_") and k.endswith("_db")]
     assert main(["ckm", "tiny", "--data", str(data), "--weather", "night", "--layer", "sinr_db"]) == 0
     assert "sinr_db" in capsys.readouterr().out
 
@@ -136,6 +137,9 @@ def test_rerun_is_idempotent_and_reproducible(run):
     from conftest import TESTS
 
     before = stores.open_store(data / "cirs" / "tiny" / "sunny.zarr").load()
-    materialize_scene(TESTS / "scenes" / "tiny", data, ["sunny"], ["r0c0"], instance=instance, progress=lambda s: None)
+    # forced: an unforced rerun would find everything up to date and recompute nothing
+    materialize_scene(TESTS / "scenes" / "tiny", data, ["sunny"], ["r0c0"], instance=instance, progress=lambda s: None,
+                      force=True)
     after = stores.open_store(data / "cirs" / "tiny" / "sunny.zarr").load()
+    assert after.attrs["data_version"] == before.attrs["data_version"]
     xr.testing.assert_identical(before.drop_attrs(), after.drop_attrs())

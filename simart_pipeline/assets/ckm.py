@@ -64,8 +64,8 @@ def ckm_layers(context: dg.AssetExecutionContext, project: ProjectResource, ray_
           deps=[dg.AssetDep("ckm_layers", partition_mapping=from_scene)],
           ins={"osm_extract": dg.AssetIn()})
 def ckm_map(context: dg.AssetExecutionContext, project: ProjectResource, osm_extract: xr.Dataset) -> dg.MaterializeResult:
-    """The scene's channel knowledge maps: which tiles are complete, and a heat map of every layer
-    (first height; per-station layers shown for the serving station) over the building footprints."""
+    """The scene's channel knowledge maps: which tiles are complete, and one picture per map of its
+    key layers (first height; per-station layers shown for the serving station) over the buildings."""
     scene = context.partition_key
     cfg = project.config(scene)
     geom = geometry.from_dataset(osm_extract.load())
@@ -78,8 +78,8 @@ def ckm_map(context: dg.AssetExecutionContext, project: ProjectResource, osm_ext
         complete = [t for t in wanted if done[parse_tile_key(t)]]
         meta[f"{name}_store"] = dg.MetadataValue.path(str(path))
         meta[f"{name}_tiles_complete"] = f"{len(complete)}/{len(wanted)}"
-        for layer, values, label in picture_layers(ds):
-            meta[f"{name}_{layer}"] = dg.MetadataValue.md(previews.heatmap(
-                values, ds["x"].values, ds["y"].values, geom, label,
-                title=f"{scene} {name} {layer} (h = {float(ds['height'][0]):g} m)"))
+        meta[f"{name}_cells"] = int(ds.sizes["y"] * ds.sizes["x"] * ds.sizes["height"])
+        meta[f"{name}_map"] = dg.MetadataValue.md(previews.heatmaps(
+            list(picture_layers(ds)), ds["x"].values, ds["y"].values, geom,
+            title=f"{scene}: {name} map ({', '.join(weathers)}), h = {float(ds['height'][0]):g} m"))
     return versioned_result(context, project, "ckm_map", meta)

@@ -52,12 +52,20 @@ def map_template(cfg: SceneConfig, tile_ds: xr.Dataset, weathers: list[str], att
     return spec, coords, full
 
 
-def picture_layers(ds: xr.Dataset):
-    """(layer, 2D values at the first height, label) for every layer worth a heat map; per-station
-    layers show the serving station's value."""
+# The layers of the one picture of a map: propagation, then link level.
+KEY_LAYERS = ("path_gain_db", "toa_s", "rms_delay_spread_s", "asa_deg", "los_power_fraction", "best_bs",
+              "sinr_db", "mcs_index", "rate_bps")
+
+
+def picture_layers(ds: xr.Dataset, names=KEY_LAYERS):
+    """(layer, 2D values at the first height, label) for the layers ``names`` (in that order) that
+    the map has; per-station layers show the serving station's value."""
     h0 = ds.isel(height=0)
     serving = h0["best_bs"].values if "best_bs" in h0 else None
-    for name, v in h0.data_vars.items():
+    for name in names:
+        if name not in h0.data_vars:
+            continue
+        v = h0[name]
         if v.dims[-2:] != ("y", "x") or "beam" in v.dims or (v.dtype == bool and name != "los"):
             continue
         vals = v.values
