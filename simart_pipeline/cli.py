@@ -118,6 +118,7 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
     from simart_pipeline.assets.versioning import FORCE_TAG
     from simart_pipeline.definitions import build_definitions
     from simart_pipeline.partitions import scene_partitions
+    from simart_pipeline.radio.materials import WEATHER_GROUP
 
     cfg = registry.register(scene_dir, data_root)
     weathers, tiles = _plan(cfg, weathers, tiles)
@@ -130,7 +131,10 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
     plan = resources["project"].version_plan(cfg.name)
     run_config = None if verbose else {"loggers": {"console": {"config": {"log_level": "WARNING"}}}}
     steps = [(["osm_extract", "paired_meshes", "trajectory"], cfg.name)]
-    steps += [(["sensor_frames", "cirs", "kpis", "session"], dg.MultiPartitionKey({"scene": cfg.name, "weather": w}))
+    # one trace per weather group (sunny and night share the dry one), then each weather's stages
+    steps += [(["cirs"], dg.MultiPartitionKey({"scene": cfg.name, "weather_group": g}))
+              for g in dict.fromkeys(WEATHER_GROUP[w] for w in weathers)]
+    steps += [(["sensor_frames", "kpis", "session"], dg.MultiPartitionKey({"scene": cfg.name, "weather": w}))
               for w in weathers]
     steps += [(["ckm_layers"], dg.MultiPartitionKey({"scene": cfg.name, "tile": t})) for t in tiles]
     steps += [(["ckm_map"], cfg.name)]

@@ -27,7 +27,7 @@ from pathlib import Path
 
 from simart_pipeline.ckm.grid import scene_tiles
 from simart_pipeline.config import SceneConfig, recording_format
-from simart_pipeline.radio.materials import weathers_sharing_materials
+from simart_pipeline.radio.materials import WEATHER_GROUP
 
 PACKAGE = Path(__file__).resolve().parent
 
@@ -37,7 +37,7 @@ class Stage:
     """One asset: its science entry points (for the code version) and its partitioning."""
 
     entry_modules: tuple[str, ...]
-    partitioned_by: str  # "scene", "weather" (scene x weather) or "tile" (scene x tile)
+    partitioned_by: str  # "scene", or the second dimension: "weather", "weather_group" or "tile"
 
 
 STAGES: dict[str, Stage] = {
@@ -45,7 +45,7 @@ STAGES: dict[str, Stage] = {
     "paired_meshes": Stage(("simart_pipeline.scene.build",), "scene"),
     "trajectory": Stage(("simart_pipeline.mobility.trajectory", "simart_pipeline.mobility.replay"), "scene"),
     "sensor_frames": Stage(("simart_pipeline.sensing.sensor_frames",), "weather"),
-    "cirs": Stage(("simart_pipeline.radio.cirs", "simart_pipeline.radio.tracer"), "weather"),
+    "cirs": Stage(("simart_pipeline.radio.cirs", "simart_pipeline.radio.tracer"), "weather_group"),
     "kpis": Stage(("simart_pipeline.link.kpis", "simart_pipeline.link.beams"), "weather"),
     "ckm_layers": Stage(("simart_pipeline.ckm.layers", "simart_pipeline.ckm.mosaic", "simart_pipeline.ckm.maps",
                          "simart_pipeline.ckm.one_pass"), "tile"),
@@ -139,11 +139,10 @@ def config_slice(cfg: SceneConfig, asset: str, sub: str | None = None) -> dict:
     if asset == "sensor_frames":
         return {**_devices(raw, sensors=True), "sensor_imports": raw["sensor_imports"], "seed": raw["seed"],
                 "origin": raw["origin"], "duration_s": clock["duration_s"], "weather": sub}
-    if asset == "cirs":
+    if asset == "cirs":  # sub: a weather group
         return {**_devices(raw, sensors=False), **{k: raw[k] for k in ("ray_tracing", "ofdm")},
                 "materials": dry_materials, "weather_materials": cfg.materials.weather_table()[sub],
-                "clock": {k: clock[k] for k in ("duration_s", "radio_rate_hz")},
-                "materials_of": radio_materials_key(cfg, sub)}
+                "clock": {k: clock[k] for k in ("duration_s", "radio_rate_hz")}}
     if asset == "kpis":
         return {**{k: raw[k] for k in ("ofdm", "link", "receiver", "codebook", "seed")}, "weather": sub}
     if asset == "ckm_layers":
@@ -155,12 +154,6 @@ def config_slice(cfg: SceneConfig, asset: str, sub: str | None = None) -> dict:
     if asset == "session":
         return {"duration_s": clock["duration_s"], "weather": sub}
     raise KeyError(f"unknown asset {asset!r}")
-
-
-def radio_materials_key(cfg: SceneConfig, weather: str) -> str:
-    """The weather whose radio materials ``weather`` shares (itself, or e.g. sunny for night)."""
-    groups = weathers_sharing_materials(cfg.weathers, cfg.materials.weather_table())
-    return next(k for k, ws in groups.items() if weather in ws)
 
 
 # --- source files ---------------------------------------------------------------------------------
@@ -216,13 +209,13 @@ def upstream(cfg: SceneConfig, asset: str, sub: str | None) -> list[tuple[str, s
     if asset == "cirs":
         return [("paired_meshes", None), ("trajectory", None), ("osm_extract", None)]
     if asset == "kpis":
-        return [("cirs", sub)]
+        return [("cirs", WEATHER_GROUP[sub])]
     if asset == "ckm_layers":
         return [("paired_meshes", None), ("osm_extract", None)]
     if asset == "ckm_map":
         return [("osm_extract", None)] + [("ckm_layers", t) for t in scene_tiles(cfg.ckm)]
     if asset == "session":
-        return [("trajectory", None), ("sensor_frames", sub), ("cirs", sub), ("kpis", sub)]
+        return [("trajectory", None), ("sensor_frames", sub), ("cirs", WEATHER_GROUP[sub]), ("kpis", sub)]
     raise KeyError(f"unknown asset {asset!r}")
 
 

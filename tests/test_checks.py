@@ -15,6 +15,9 @@ from simart_pipeline.ckm.maps import map_groups, map_path
 from simart_pipeline.ckm.mosaic import open_map
 
 
+WEATHERS = ("sunny", "night", "rainy")
+
+
 def _store(data, asset, sub=None):
     return stores.open_store(stores.store_path(data, asset, "tiny", sub),
                              tree=asset in ("sensor_frames", "session")).load()
@@ -40,11 +43,13 @@ def test_every_check_of_the_tiny_scene_ran_and_passed(tiny_run):
     for asset in ("trajectory", "osm_extract"):
         assert {(asset, "finite_values", "tiny"), (asset, "known_frame_ids", "tiny")} <= ran
     assert ("trajectory", "on_shared_clock", "tiny") in ran
-    for w in ("sunny", "night", "rainy"):
-        for asset in ("sensor_frames", "cirs", "kpis", "session"):
+    for asset, keys in (("sensor_frames", WEATHERS), ("kpis", WEATHERS), ("session", WEATHERS),
+                        ("cirs", ("sunny", "rainy"))):  # cirs: one partition per weather group
+        for w in keys:
             for name in ("finite_values", "known_frame_ids", "on_shared_clock"):
                 assert (asset, name, f"tiny|{w}") in ran, (asset, name, w)
-        assert ("cirs", "passive_channel", f"tiny|{w}") in ran
+    for g in ("sunny", "rainy"):
+        assert ("cirs", "passive_channel", f"tiny|{g}") in ran
     for t in ("r0c0", "r0c1"):
         assert {("ckm_layers", "ckm_tile_complete", f"tiny|{t}"), ("ckm_layers", "ckm_passive", f"tiny|{t}")} <= ran
     # the metadata carries the counts
@@ -73,21 +78,25 @@ def test_a_failed_blocking_check_stops_the_downstream_asset(tiny_run, tmp_path, 
 
     data = tmp_path / "data"
     shutil.copytree(tiny_run[0], data)
-    broken = quality.CheckResult(False, "a path above free space (broken on purpose)", {"paths_checked": 1})
-    monkeypatch.setattr(quality, "passive_channel", lambda ds, **kw: broken)
+    broken = quality.CheckResult(False, "a stream off the clock (broken on purpose)", {"streams_checked": 1})
+    on_clock = quality.on_shared_clock
+    monkeypatch.setattr(quality, "on_shared_clock", lambda ds, cfg, asset, *a, **kw:
+                        broken if asset == "sensor_frames" else on_clock(ds, cfg, asset, *a, **kw))
     instance = dg.DagsterInstance.ephemeral()
     registry.register(TESTS / "scenes" / "tiny", data)
     instance.add_dynamic_partitions("scene", ["tiny"])
-    result = dg.materialize([*ALL_ASSETS, *ALL_CHECKS], selection=["cirs", "kpis"],
+    result = dg.materialize([*ALL_ASSETS, *ALL_CHECKS], selection=["sensor_frames", "kpis", "session"],
                             partition_key=dg.MultiPartitionKey({"scene": "tiny", "weather": "sunny"}),
                             instance=instance, resources=build_definitions(data_root=str(data)).resources,
                             raise_on_error=False)
     assert not result.success
     done = {e.asset_key.path[-1] for e in result.get_asset_materialization_events()}
-    assert done == {"cirs"}  # kpis never ran
-    evals = {e.asset_check_key.name: e.passed for e in result.get_asset_check_evaluations()}
-    assert evals["passive_channel"] is False and evals["finite_values"] is True
-    assert not instance.get_materialized_partitions(dg.AssetKey("kpis"))
+    assert done == {"sensor_frames", "kpis"}  # session, downstream of the failed check, never ran
+    evals = {(e.asset_check_key.asset_key.path[-1], e.asset_check_key.name): e.passed
+             for e in result.get_asset_check_evaluations()}
+    assert evals[("sensor_frames", "on_shared_clock")] is False and evals[("sensor_frames", "finite_values")] is True
+    assert evals[("kpis", "on_shared_clock")] is True
+    assert not instance.get_materialized_partitions(dg.AssetKey("session"))
 
 
 # -- the functions on real and broken data ----------------------------------------------------------

@@ -26,7 +26,8 @@ def test_definitions_load_with_every_asset_and_partitioning():
         else:
             assert isinstance(pd, dg.MultiPartitionsDefinition)
             dims = {d.name for d in pd.partitions_defs}
-            assert dims == ({"scene", "tile"} if name == "ckm_layers" else {"scene", "weather"})
+            assert dims == ({"scene", "tile"} if name == "ckm_layers" else
+                            {"scene", "weather_group"} if name == "cirs" else {"scene", "weather"})
     # lineage: session gathers sensors, channels and KPIs; ckm depends on the meshes
     parents = lambda n: {k.to_user_string() for k in by_name[n].parent_keys}  # noqa: E731
     assert parents("session") == {"trajectory", "sensor_frames", "cirs", "kpis"}

@@ -28,14 +28,15 @@ def _all_finite_where_valid(ds: xr.Dataset):
 
 def test_one_store_per_asset_partition(run):
     data, out, instance, lines, cfg = run
-    expected = {"osm_extract": 1, "paired_meshes": 1, "trajectory": 1, "sensor_frames": 3, "cirs": 3,
+    expected = {"osm_extract": 1, "paired_meshes": 1, "trajectory": 1, "sensor_frames": 3, "cirs": 2,
                 "kpis": 3, "session": 3, "ckm": 2}
     assert {k: len(v) for k, v in out.items()} == expected
     assert (data / "paired_meshes" / "tiny" / "radio" / "scene.xml").is_file()
     assert any("materialised" in line for line in lines)
     # the instance recorded every materialisation
-    for key in ("cirs", "kpis", "session"):
+    for key in ("kpis", "session"):
         assert len(instance.get_materialized_partitions(dg.AssetKey(key))) == 3
+    assert len(instance.get_materialized_partitions(dg.AssetKey("cirs"))) == 2  # one per weather group
     assert len(instance.get_materialized_partitions(dg.AssetKey("ckm_layers"))) == 2
     assert len(instance.get_materialized_partitions(dg.AssetKey("ckm_map"))) == 1
 
@@ -85,20 +86,30 @@ def test_channels_and_kpis_are_computed(run):
 
 
 def test_dry_weathers_trace_once_and_rain_traces_again(run):
-    """Night has sunny's radio materials: its CIRs are sunny's, reused by content hash, and say so."""
+    """Night has sunny's radio materials: one trace serves both, through the weather-group partition
+    mapping that Dagster's lineage shows (no asset reads another partition's store on its own)."""
     data, _, instance, _, _ = run
-    sunny, night, rainy = (stores.open_store(data / "cirs" / "tiny" / f"{w}.zarr").load() for w in WEATHERS)
-    assert night.attrs["reused_from_weather"] == "sunny" and sunny.attrs["reused_from_weather"] == ""
-    assert rainy.attrs["reused_from_weather"] == ""
-    assert night.attrs["cir_content_sha256"] == sunny.attrs["cir_content_sha256"] != rainy.attrs["cir_content_sha256"]
-    xr.testing.assert_identical(sunny.drop_attrs(), night.drop_attrs())
+    assert not (data / "cirs" / "tiny" / "night.zarr").exists()
+    sunny, rainy = (stores.open_store(data / "cirs" / "tiny" / f"{g}.zarr").load() for g in ("sunny", "rainy"))
+    assert sunny.attrs["weathers"] == "sunny,night" and rainy.attrs["weathers"] == "rainy"
+    assert sunny.attrs["cir_content_sha256"] != rainy.attrs["cir_content_sha256"]
     los = sunny["los"].values
     assert not np.array_equal(sunny["a"].values[..., 1:], rainy["a"].values[..., 1:]) or not los.any()
+    kpis = {w: stores.open_store(data / "kpis" / "tiny" / f"{w}.zarr").load() for w in WEATHERS}
+    xr.testing.assert_identical(kpis["sunny"].drop_attrs(), kpis["night"].drop_attrs())
+    night_session = stores.open_store(data / "session" / "tiny" / "night.zarr", tree=True)
+    np.testing.assert_array_equal(night_session["cirs"]["a"].values, sunny["a"].values)
+
+    def upstream(asset, weather):
+        key = str(dg.MultiPartitionKey({"scene": "tiny", "weather": weather}))
+        rec = instance.fetch_materializations(
+            dg.AssetRecordsFilter(asset_key=dg.AssetKey(asset), asset_partitions=[key]), limit=1).records[0]
+        return set(rec.event_log_entry.asset_materialization.metadata["data_version_inputs"].value["upstream"])
+
+    assert "cirs[sunny]" in upstream("kpis", "night") and "cirs[rainy]" in upstream("kpis", "rainy")
+    assert "cirs[sunny]" in upstream("session", "night")
     events = instance.fetch_materializations(dg.AssetKey("cirs"), limit=10).records
-    meta = {e.asset_materialization.partition: e.asset_materialization.metadata for e in events}
-    night_meta = next(m for k, m in meta.items() if "night" in str(k))
-    assert night_meta["reused_from_weather"].value == "sunny"
-    assert "data:image/png;base64," in next(iter(meta.values()))["paths_picture"].value
+    assert "data:image/png;base64," in events[0].asset_materialization.metadata["paths_picture"].value
 
 
 def test_ckm_maps_hold_every_layer_for_dry_and_wet_materials(run, capsys):

@@ -10,13 +10,13 @@ import warnings
 import dagster as dg
 
 from simart_pipeline import quality, stores
-from simart_pipeline.partitions import scene_partitions, scene_tile, scene_weather, split_key
+from simart_pipeline.partitions import scene_partitions, scene_tile, scene_weather, scene_weather_group, split_key
 from simart_pipeline.resources import TREE_ASSETS, ProjectResource
 
 # Store assets and their partitions; every one gets the finite-values, clock and frame-id checks
 # (osm_extract has no time coordinate, so no clock check).
 STORE_ASSETS = {"osm_extract": scene_partitions, "trajectory": scene_partitions,
-                "sensor_frames": scene_weather, "cirs": scene_weather, "kpis": scene_weather,
+                "sensor_frames": scene_weather, "cirs": scene_weather_group, "kpis": scene_weather,
                 "session": scene_weather}
 TIMELESS = {"osm_extract"}
 
@@ -67,13 +67,13 @@ def _store_checks(asset: str, partitions_def) -> list[dg.AssetChecksDefinition]:
     return out
 
 
-@dg.asset_check(asset="cirs", blocking=True, partitions_def=scene_weather,
+@dg.asset_check(asset="cirs", blocking=True, partitions_def=scene_weather_group,
                 description="Passive channel: no valid path gains more than free space at the tx-rx "
                             "distance times the arrays' largest element gains (+0.1 dB), nor arrives "
                             "before the line of sight.")
 def passive_channel(context: dg.AssetCheckExecutionContext, project: ProjectResource) -> dg.AssetCheckResult:
-    scene, weather = _key(context, scene_weather)
-    return _result(quality.passive_channel(_open(project, "cirs", scene, weather)))
+    scene, group = _key(context, scene_weather_group)
+    return _result(quality.passive_channel(_open(project, "cirs", scene, group)))
 
 
 def _tile_maps(project: ProjectResource, scene: str):

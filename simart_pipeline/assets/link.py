@@ -8,11 +8,13 @@ from simart_pipeline import provenance, stores
 from simart_pipeline.link.beams import scene_codebook_weights
 from simart_pipeline.link.kpis import compute_kpis
 from simart_pipeline.assets.versioning import code_version, versioned
-from simart_pipeline.partitions import scene_weather, split_key
+from simart_pipeline.partitions import from_weather_group, scene_weather, split_key
+from simart_pipeline.radio.materials import WEATHER_GROUP
 from simart_pipeline.resources import ProjectResource
 
 
-@dg.asset(partitions_def=scene_weather, code_version=code_version("kpis"), group_name="radio")
+@dg.asset(partitions_def=scene_weather, code_version=code_version("kpis"), group_name="radio",
+          ins={"cirs": dg.AssetIn(partition_mapping=from_weather_group)})
 def kpis(context: dg.AssetExecutionContext, project: ProjectResource,
          cirs: xr.Dataset) -> dg.Output[xr.Dataset]:
     """Beam gains, best beam, serving cell, SINR with interference, EESM, BLER, MCS, TBS, rates."""
@@ -22,7 +24,7 @@ def kpis(context: dg.AssetExecutionContext, project: ProjectResource,
     if cfg.codebook.path is not None:
         weights = scene_codebook_weights(cfg, cirs["tx_ant_position_m"].values,
                                          project.scene_dir(scene))
-    source = str(stores.store_path(project.data_root, "cirs", scene, weather))
+    source = str(stores.store_path(project.data_root, "cirs", scene, WEATHER_GROUP[weather]))
     ds = compute_kpis(cirs.load(), cfg, codebook_weights=weights, source=source)
     ds.attrs.update(provenance.attrs(cfg, "kpis"))
     meta = {"time_steps": ds.sizes["time"], "served_fraction": float(ds["rx_served"].mean())}

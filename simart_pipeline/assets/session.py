@@ -5,12 +5,13 @@ import xarray as xr
 
 from simart_pipeline import provenance
 from simart_pipeline.assets.versioning import code_version, versioned
-from simart_pipeline.partitions import from_scene, scene_weather, split_key
+from simart_pipeline.partitions import from_scene, from_weather_group, scene_weather, split_key
 from simart_pipeline.resources import ProjectResource
 
 
 @dg.asset(partitions_def=scene_weather, code_version=code_version("session"), group_name="session",
-          ins={"trajectory": dg.AssetIn(partition_mapping=from_scene)})
+          ins={"trajectory": dg.AssetIn(partition_mapping=from_scene),
+               "cirs": dg.AssetIn(partition_mapping=from_weather_group)})
 def session(context: dg.AssetExecutionContext, project: ProjectResource, trajectory: xr.Dataset,
             sensor_frames: xr.DataTree, cirs: xr.Dataset, kpis: xr.Dataset) -> dg.Output[xr.DataTree]:
     """Groups ``/trajectory``, ``/sensors/<device>/<sensor>``, ``/cirs`` and ``/kpis`` on one clock."""

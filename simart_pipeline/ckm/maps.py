@@ -17,7 +17,7 @@ from simart_pipeline.radio.materials import weathers_sharing_materials
 def map_groups(cfg: SceneConfig) -> dict[str, list[str]]:
     """Weathers with the same radio materials share one map, named after the first of them
     (:func:`~simart_pipeline.radio.materials.weathers_sharing_materials`)."""
-    return weathers_sharing_materials(cfg.ckm.weathers or cfg.weathers, cfg.materials.weather_table())
+    return weathers_sharing_materials(cfg.ckm.weathers or cfg.weathers)
 
 
 def map_name_for_weather(cfg: SceneConfig, weather: str) -> str:

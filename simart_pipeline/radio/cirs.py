@@ -64,7 +64,7 @@ def link_geometry(cfg: SceneConfig, traj: xr.Dataset) -> LinkGeometry:
 
 def cir_content_sha256(radio: RadioScene, cfg: SceneConfig, lg: LinkGeometry) -> str:
     """Hash of everything the CIRs depend on: scene, materials, solver, arrays, device poses and
-    powers. Two weathers with the same hash have the same CIRs (the second may reuse the first's)."""
+    powers (stored as ``cir_content_sha256``): two traces with the same hash have the same CIRs."""
     h = hashlib.sha256()
     h.update(radio.content_sha256().encode())
     h.update(lg.sha256().encode())
@@ -203,15 +203,8 @@ def cir_dataset(radio: RadioScene, cfg: SceneConfig, lg: LinkGeometry, paths: Tr
         path_order="valid first, then delay, then interaction sequence",
         channel_reconstruction="H_ij(f) = sum_p a[i, j, p] exp(-j 2 pi f tau_p), f the absolute "
         "frequency; build it in float64 (simart_pipeline.link.ofdm)",
-        reused_from_weather="",
         **{f"tx_array_{k}": str(v) for k, v in bss[0].array.model_dump().items()},
         **{f"rx_array_{k}": str(v) for k, v in plats[0].array.model_dump().items()},
     )
     return ds
 
-
-def reuse_for_weather(source: xr.Dataset, weather: str) -> xr.Dataset:
-    """The CIRs of another weather whose radio materials are the same, relabelled for ``weather``."""
-    ds = source.copy()
-    ds.attrs = dict(source.attrs, weather=weather, reused_from_weather=source.attrs["weather"])
-    return ds

@@ -74,21 +74,24 @@ WEATHER_MATERIALS: dict[str, dict[str, str]] = {
 }
 
 
-def weathers_sharing_materials(weathers, table: dict[str, dict[str, str]] | None = None) -> dict[str, list[str]]:
-    """The one reuse policy of radio work across weathers: weathers whose material swaps are equal
-    trace the same channels, so they share one CIR trace and one channel knowledge map, named after
-    the first of them in ``weathers`` order (sunny and night: ``sunny``; rain: ``rainy``).
-
-    :param table: weather -> {dry material: its replacement} (default :data:`WEATHER_MATERIALS`;
-        a scene's is ``cfg.materials.weather_table()``)."""
-    table = WEATHER_MATERIALS if table is None else table
+def weathers_sharing_materials(weathers) -> dict[str, list[str]]:
+    """The one reuse policy of radio work across weathers, for the CIRs and the channel knowledge
+    maps alike: weathers whose rows of :data:`WEATHER_MATERIALS` are equal use the same set of radio
+    materials, so they share one trace and one map, named after the first weather of the set
+    (:data:`WEATHER_GROUP`: sunny and night use the dry set ``sunny``; rain the wet set ``rainy``,
+    whose swaps a scene sets in ``materials.rain``)."""
     groups: dict[str, list[str]] = {}
     for w in weathers:
-        if w not in table:
-            raise ValueError(f"unknown weather {w!r}; known: {', '.join(table)}")
-        key = next((g for g in groups if table[g] == table[w]), w)
-        groups.setdefault(key, []).append(w)
+        if w not in WEATHER_GROUP:
+            raise ValueError(f"unknown weather {w!r}; known: {', '.join(WEATHER_GROUP)}")
+        groups.setdefault(WEATHER_GROUP[w], []).append(w)
     return groups
+
+
+# Weather -> the weather group whose radio materials it uses (the first weather with an equal row).
+WEATHER_GROUP: dict[str, str] = {
+    w: next(g for g in WEATHER_MATERIALS if WEATHER_MATERIALS[g] == WEATHER_MATERIALS[w]) for w in WEATHER_MATERIALS}
+WEATHER_GROUPS: tuple[str, ...] = tuple(dict.fromkeys(WEATHER_GROUP.values()))
 
 
 def water_permittivity(frequency_hz: float, temperature_c: float = WATER_TEMPERATURE_C,
