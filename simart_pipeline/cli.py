@@ -115,6 +115,7 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
     import dagster as dg
 
     from simart_pipeline.assets import ALL_ASSETS, ALL_CHECKS
+    from simart_pipeline.assets.config_sources import report_config_versions
     from simart_pipeline.assets.versioning import FORCE_TAG
     from simart_pipeline.definitions import build_definitions
     from simart_pipeline.partitions import scene_partitions
@@ -130,6 +131,9 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
     resources = defs.resources
     plan = resources["project"].version_plan(cfg.name)
     run_config = None if verbose else {"loggers": {"console": {"config": {"log_level": "WARNING"}}}}
+    t_start = time.perf_counter()
+    # Dagster learns the scene's config versions first, so that its own staleness (the UI) agrees.
+    report_config_versions(instance, plan)
     steps = [(["osm_extract", "paired_meshes", "trajectory"], cfg.name)]
     # one trace per weather group (sunny and night share the dry one), then each weather's stages
     steps += [(["cirs"], dg.MultiPartitionKey({"scene": cfg.name, "weather_group": g}))
@@ -140,7 +144,6 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
     steps += [(["ckm_map"], cfg.name)]
     total = sum(len(s[0]) for s in steps)
     done = computed = 0
-    t_start = time.perf_counter()
     for names, key in steps:
         label = _label(key)
         stale = {}

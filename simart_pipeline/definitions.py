@@ -3,6 +3,7 @@
 import dagster as dg
 
 from simart_pipeline.assets import ALL_ASSETS, ALL_CHECKS
+from simart_pipeline.assets.config_sources import observation_jobs
 from simart_pipeline.resources import ProjectResource, RayTracerResource, ZarrStoreIOManager
 
 
@@ -10,6 +11,7 @@ def build_definitions(data_root: str | None = None, scenes_root: str | None = No
     project = ProjectResource(**{k: v for k, v in (("data_root", data_root), ("scenes_root", scenes_root)) if v})
     return dg.Definitions(
         assets=ALL_ASSETS,
+        jobs=observation_jobs(),
         asset_checks=ALL_CHECKS,
         resources={
             "project": project,

@@ -238,6 +238,12 @@ class VersionPlan:
                 "upstream": {f"{a}[{s}]" if s else a: self.data_version(a, s)
                              for a, s in upstream(self.cfg, asset, sub)}}
 
+    def config_version(self, asset: str, sub: str | None = None) -> str:
+        """Digest of the config slice and the source files of ``(asset, sub)``: the data version of
+        its ``scene_config`` source asset in Dagster."""
+        return _digest({"config": config_slice(self.cfg, asset, sub),
+                        "source_files": source_files(self.cfg, asset, self.scene_dir)})[:32]
+
     def data_version(self, asset: str, sub: str | None = None) -> str:
         key = (asset, sub)
         if key not in self._memo:

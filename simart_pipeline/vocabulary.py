@@ -20,6 +20,26 @@ WEATHERS: tuple[str, ...] = ("sunny", "rainy", "night")
 WeatherName = Literal["sunny", "rainy", "night"]  # the schema's type of a weather name
 
 
+# --- radio materials ------------------------------------------------------------------------------
+# ITU-R P.2040 materials that Sionna RT's ITURadioMaterial knows, and the project's own (water by
+# Klein & Swift 1977, rain-soaked facades by CRIM mixing: their models are in radio/materials.py).
+ITU_MATERIALS: tuple[str, ...] = (
+    "vacuum", "concrete", "brick", "plasterboard", "wood", "glass", "ceiling_board", "chipboard",
+    "plywood", "marble", "floorboard", "metal", "very_dry_ground", "medium_dry_ground", "wet_ground",
+)
+CUSTOM_MATERIAL_NAMES: tuple[str, ...] = ("sea_water", "fresh_water", "wet_concrete", "wet_brick")
+RADIO_MATERIALS: tuple[str, ...] = ITU_MATERIALS + CUSTOM_MATERIAL_NAMES
+
+# What each weather does to the radio materials, by default (a scene's ``materials.rain`` replaces
+# the rainy row); sunny and night keep the dry ones. Weathers with equal rows share radio work.
+WEATHER_MATERIALS: dict[str, dict[str, str]] = {
+    "sunny": {},
+    "night": {},
+    "rainy": {"medium_dry_ground": "wet_ground", "very_dry_ground": "wet_ground",
+              "concrete": "wet_concrete", "brick": "wet_brick"},
+}
+
+
 # --- semantic classes -----------------------------------------------------------------------------
 class SemanticClass(IntEnum):
     """Per-face semantic class of the visual mesh (and of camera segmentation images)."""

@@ -16,10 +16,13 @@ EXPECTED = {"osm_extract", "paired_meshes", "trajectory", "sensor_frames", "cirs
 def test_definitions_load_with_every_asset_and_partitioning():
     graph = defs.resolve_asset_graph()
     keys = {k.to_user_string() for k in graph.get_all_asset_keys()}
-    assert keys == EXPECTED
+    assert keys == EXPECTED | {f"scene_config/{n}" for n in EXPECTED}  # each stage's part of scene.yaml
     by_name = {k.to_user_string(): graph.get(k) for k in graph.get_all_asset_keys()}
     scene_only = {"osm_extract", "paired_meshes", "trajectory", "ckm_map"}
     for name, node in by_name.items():
+        if name.startswith("scene_config/"):  # partitioned like the stage that reads it
+            assert node.partitions_def == by_name[name.split("/")[1]].partitions_def
+            continue
         pd = node.partitions_def
         if name in scene_only:
             assert isinstance(pd, dg.DynamicPartitionsDefinition) and pd.name == "scene"
@@ -29,7 +32,10 @@ def test_definitions_load_with_every_asset_and_partitioning():
             assert dims == ({"scene", "tile"} if name == "ckm_layers" else
                             {"scene", "weather_group"} if name == "cirs" else {"scene", "weather"})
     # lineage: session gathers sensors, channels and KPIs; ckm depends on the meshes
-    parents = lambda n: {k.to_user_string() for k in by_name[n].parent_keys}  # noqa: E731
+    def parents(n):
+        return {k.to_user_string() for k in by_name[n].parent_keys} - {f"scene_config/{n}"}
+
+    assert all(f"scene_config/{n}" in {k.to_user_string() for k in by_name[n].parent_keys} for n in EXPECTED)
     assert parents("session") == {"trajectory", "sensor_frames", "cirs", "kpis"}
     assert parents("cirs") == {"paired_meshes", "trajectory", "osm_extract"}
     assert parents("ckm_layers") == {"paired_meshes", "osm_extract"}

@@ -44,6 +44,16 @@ def _ground(size=2000.0):
     return ground_square(size)
 
 
+def test_every_material_name_has_its_model():
+    """The vocabulary's names and the models of radio/materials.py name the same custom materials."""
+    from simart_pipeline import vocabulary
+
+    assert tuple(materials.CUSTOM_MATERIALS) == vocabulary.CUSTOM_MATERIAL_NAMES
+    assert set(vocabulary.WEATHER_MATERIALS) == set(vocabulary.WEATHERS)
+    for row in vocabulary.WEATHER_MATERIALS.values():
+        assert set(row) | set(row.values()) <= set(vocabulary.RADIO_MATERIALS)
+
+
 def test_tracer_from_explicit_arguments_equals_the_one_from_a_scene_config(tiny_scene):
     """A notebook builds the tracer from keyword arguments; the scene config is one way to fill them."""
     from simart_pipeline.config import Array, RayTracing

@@ -9,6 +9,7 @@ import pytest
 import yaml
 
 from simart_pipeline import versions
+from simart_pipeline.assets.config_sources import report_config_versions
 from simart_pipeline.cli import materialize_scene
 from simart_pipeline.config import load_scene_config
 
@@ -60,15 +61,43 @@ def reruns(tmp_path_factory):
         materialize_scene(scene, data, None, TILES, instance=instance, progress=lines.append, **kw)
         steps[name] = (_files(data), lines)
 
+    def dagster_stale(name):
+        """What Dagster itself calls stale after an edit, once it has read the config sources."""
+        report_config_versions(instance, versions.VersionPlan(load_scene_config(scene), scene))
+        steps[name + "_stale"] = stale_in_dagster(instance, data)
+
     run("first")
+    steps["first_stale"] = stale_in_dagster(instance, data)
     run("unchanged")
     _edit(scene, lambda raw: raw["platforms"][0]["sensors"][0].update(rate_hz=4.0))
+    dagster_stale("sensor_rate")
     run("sensor_rate")
     _edit(scene, lambda raw: raw.setdefault("materials", {}).update(
         rain={"concrete": "wet_brick", "medium_dry_ground": "wet_ground"}))
+    dagster_stale("rain_materials")
     run("rain_materials")
     run("forced", force=True)
     return data, scene, instance, steps
+
+
+def stale_in_dagster(instance, data) -> dict[str, str]:
+    """``{"asset (partition)": root cause}`` of every stale materialised partition, as Dagster's own
+    staleness (what the UI shows) reports it."""
+    from dagster._core.definitions.data_version import CachingStaleStatusResolver, StaleStatus
+    from dagster._core.loader import LoadingContextForTest
+
+    from simart_pipeline.definitions import build_definitions
+
+    graph = build_definitions(data_root=str(data)).resolve_asset_graph()
+    resolver = CachingStaleStatusResolver(instance, graph, LoadingContextForTest(instance))
+    out = {}
+    for key in graph.materializable_asset_keys:
+        for part in instance.get_materialized_partitions(key):
+            if resolver.get_status(key, part) == StaleStatus.STALE:
+                roots = resolver.get_stale_root_causes(key, part)
+                out[f"{key.to_user_string()} ({part})"] = "; ".join(
+                    f"{c.key.asset_key.to_user_string()} {c.reason}" for c in roots)
+    return out
 
 
 def _computed(lines) -> set[str]:
@@ -93,6 +122,19 @@ def test_a_sensor_rate_edit_rewrites_exactly_the_sensing_stores(reruns):
     why = [line for line in steps["sensor_rate"][1] if "] sensor_frames (" in line]
     assert len(why) == 3
     assert all("its config changed" in line for line in why)
+
+
+def test_dagster_calls_stale_exactly_what_each_edit_concerns(reruns):
+    _, _, _, steps = reruns
+    assert steps["first_stale"] == {}
+    # Dagster marks the partitions whose own inputs changed; what reads them (session) turns stale
+    # when they are rematerialised with a new data version, which simart run does in the same go.
+    sensors = steps["sensor_rate_stale"]
+    assert set(sensors) == {f"sensor_frames (tiny|{w})" for w in ("sunny", "rainy", "night")}
+    assert all("scene_config/sensor_frames" in cause for cause in sensors.values())  # the cause, as the UI says
+    rain = steps["rain_materials_stale"]
+    assert set(rain) == {"cirs (tiny|rainy)"} | {f"ckm_layers (tiny|{t})" for t in TILES}
+    assert "scene_config/cirs" in rain["cirs (tiny|rainy)"]
 
 
 def test_a_rain_material_edit_rewrites_exactly_the_rainy_radio_stores(reruns):

@@ -76,12 +76,18 @@ def passive_channel(context: dg.AssetCheckExecutionContext, project: ProjectReso
     return _result(quality.passive_channel(_open(project, "cirs", scene, group)))
 
 
-def _tile_maps(project: ProjectResource, scene: str):
+def _tile_maps(context: dg.AssetCheckExecutionContext, project: ProjectResource):
+    """(tile, config, the tile's region or None when outside the scene's tiling, maps or {})."""
+    from simart_pipeline.ckm.grid import tile_slices
     from simart_pipeline.ckm.maps import map_groups, map_path
     from simart_pipeline.ckm.mosaic import open_map
 
+    scene, tile = _key(context, scene_tile)
     cfg = project.config(scene)
-    return cfg, {name: open_map(map_path(project.data_root, scene, name)) for name in map_groups(cfg)}
+    sl = tile_slices(cfg.ckm, tile)
+    if sl is None:
+        return tile, cfg, None, {}
+    return tile, cfg, sl, {name: open_map(map_path(project.data_root, scene, name)) for name in map_groups(cfg)}
 
 
 @dg.asset_check(asset="ckm_layers", partitions_def=scene_tile,
@@ -89,13 +95,7 @@ def _tile_maps(project: ProjectResource, scene: str):
                             "cells masked (inside a building or outside the region) and empty (traced, "
                             "no path from any station). A warning, not blocking.")
 def ckm_tile_complete(context: dg.AssetCheckExecutionContext, project: ProjectResource) -> dg.AssetCheckResult:
-    from simart_pipeline.ckm.grid import tile_slices
-
-    scene, tile = _key(context, scene_tile)
-    cfg = project.config(scene)
-    if tile_slices(cfg.ckm, tile) is None:
-        return _result(quality.ckm_tile({}, cfg, tile), dg.AssetCheckSeverity.WARN)
-    cfg, maps = _tile_maps(project, scene)
+    tile, cfg, _, maps = _tile_maps(context, project)
     return _result(quality.ckm_tile(maps, cfg, tile), dg.AssetCheckSeverity.WARN)
 
 
@@ -104,15 +104,10 @@ def ckm_tile_complete(context: dg.AssetCheckExecutionContext, project: ProjectRe
                             "most count x free space x the station's largest element gain (+0.1 dB), "
                             "and toa_s is not before the line of sight.")
 def ckm_passive(context: dg.AssetCheckExecutionContext, project: ProjectResource) -> dg.AssetCheckResult:
-    from simart_pipeline.ckm.grid import tile_slices
-
-    scene, tile = _key(context, scene_tile)
-    cfg = project.config(scene)
-    sl = tile_slices(cfg.ckm, tile)
+    tile, cfg, sl, maps = _tile_maps(context, project)
     if sl is None:
         return dg.AssetCheckResult(passed=True, description=f"tile {tile} is outside the scene's tiling",
                                    metadata={"cells_checked": 0})
-    cfg, maps = _tile_maps(project, scene)
     results = {name: quality.ckm_passive(ds, cfg, *sl) for name, ds in maps.items()}
     problems = [f"map {n}: {p}" for n, r in results.items() for p in r.problems]
     checked = sum(r.metadata["cells_checked"] for r in results.values())

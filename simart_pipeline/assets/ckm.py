@@ -10,14 +10,15 @@ from simart_pipeline import previews, provenance
 from simart_pipeline.ckm import mosaic
 from simart_pipeline.ckm.grid import parse_tile_key, scene_tiles, tile_slices
 from simart_pipeline.ckm.maps import map_groups, map_path, map_template, picture_layers
-from simart_pipeline.assets.versioning import FORCE_TAG, code_version, versioned_result
+from simart_pipeline.assets.versioning import FORCE_TAG, code_version, config_dep, versioned_result
 from simart_pipeline.partitions import from_scene, scene_partitions, scene_tile, split_key
 from simart_pipeline.resources import ProjectResource, RayTracerResource
 from simart_pipeline.scene import geometry
 from simart_pipeline.scene.meshes import SceneMeshes
 
 
-@dg.asset(partitions_def=scene_tile, code_version=code_version("ckm_layers"), group_name="ckm", pool="raytracing",
+@dg.asset(partitions_def=scene_tile, code_version=code_version("ckm_layers"),
+          deps=[config_dep("ckm_layers")], group_name="ckm", pool="raytracing",
           ins={"paired_meshes": dg.AssetIn(partition_mapping=from_scene),
                "osm_extract": dg.AssetIn(partition_mapping=from_scene)})
 def ckm_layers(context: dg.AssetExecutionContext, project: ProjectResource, ray_tracer: RayTracerResource,
@@ -61,7 +62,7 @@ def ckm_layers(context: dg.AssetExecutionContext, project: ProjectResource, ray_
 
 
 @dg.asset(partitions_def=scene_partitions, code_version=code_version("ckm_map"), group_name="ckm",
-          deps=[dg.AssetDep("ckm_layers", partition_mapping=from_scene)],
+          deps=[config_dep("ckm_map"), dg.AssetDep("ckm_layers", partition_mapping=from_scene)],
           ins={"osm_extract": dg.AssetIn()})
 def ckm_map(context: dg.AssetExecutionContext, project: ProjectResource, osm_extract: xr.Dataset) -> dg.MaterializeResult:
     """The scene's channel knowledge maps: which tiles are complete, and one picture per map of its

@@ -7,13 +7,14 @@ import xarray as xr
 from simart_pipeline import provenance, stores
 from simart_pipeline.link.beams import scene_codebook_weights
 from simart_pipeline.link.kpis import compute_kpis
-from simart_pipeline.assets.versioning import code_version, versioned
+from simart_pipeline.assets.versioning import code_version, config_dep, versioned
 from simart_pipeline.partitions import from_weather_group, scene_weather, split_key
 from simart_pipeline.radio.materials import WEATHER_GROUP
 from simart_pipeline.resources import ProjectResource
 
 
-@dg.asset(partitions_def=scene_weather, code_version=code_version("kpis"), group_name="radio",
+@dg.asset(partitions_def=scene_weather, code_version=code_version("kpis"),
+          deps=[config_dep("kpis")], group_name="radio",
           ins={"cirs": dg.AssetIn(partition_mapping=from_weather_group)})
 def kpis(context: dg.AssetExecutionContext, project: ProjectResource,
          cirs: xr.Dataset) -> dg.Output[xr.Dataset]:

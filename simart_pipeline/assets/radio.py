@@ -6,7 +6,7 @@ import dagster as dg
 import xarray as xr
 
 from simart_pipeline import provenance
-from simart_pipeline.assets.versioning import code_version, versioned
+from simart_pipeline.assets.versioning import code_version, config_dep, versioned
 from simart_pipeline.partitions import from_scene, scene_weather_group, split_key
 from simart_pipeline.radio import cirs as radio_cirs
 from simart_pipeline.radio.materials import weathers_sharing_materials
@@ -17,7 +17,8 @@ from simart_pipeline.scene.meshes import SceneMeshes
 from simart_pipeline.vocabulary import WEATHERS
 
 
-@dg.asset(partitions_def=scene_weather_group, code_version=code_version("cirs"), group_name="radio", pool="raytracing",
+@dg.asset(partitions_def=scene_weather_group, code_version=code_version("cirs"),
+          deps=[config_dep("cirs")], group_name="radio", pool="raytracing",
           ins={"paired_meshes": dg.AssetIn(partition_mapping=from_scene),
                "trajectory": dg.AssetIn(partition_mapping=from_scene),
                "osm_extract": dg.AssetIn(partition_mapping=from_scene)})

@@ -11,10 +11,11 @@ from simart_pipeline.mobility.trajectory import build_trajectory, check_clear_of
 from simart_pipeline.partitions import scene_partitions
 from simart_pipeline.resources import ProjectResource
 from simart_pipeline.scene import build, geometry, meshes, source
-from simart_pipeline.assets.versioning import code_version, versioned
+from simart_pipeline.assets.versioning import code_version, config_dep, versioned
 
 
-@dg.asset(partitions_def=scene_partitions, code_version=code_version("osm_extract"), group_name="scene")
+@dg.asset(partitions_def=scene_partitions, code_version=code_version("osm_extract"),
+          deps=[config_dep("osm_extract")], group_name="scene")
 def osm_extract(context: dg.AssetExecutionContext, project: ProjectResource) -> dg.Output[xr.Dataset]:
     """Source geometry in the local ENU frame: buildings and parts, roads, land cover, ground; heights, roofs, materials."""
     scene = context.partition_key
@@ -28,7 +29,8 @@ def osm_extract(context: dg.AssetExecutionContext, project: ProjectResource) -> 
         "preview": dg.MetadataValue.md(previews.top_view(geom, cfg, title=scene))})
 
 
-@dg.asset(partitions_def=scene_partitions, code_version=code_version("paired_meshes"), group_name="scene")
+@dg.asset(partitions_def=scene_partitions, code_version=code_version("paired_meshes"),
+          deps=[config_dep("paired_meshes")], group_name="scene")
 def paired_meshes(context: dg.AssetExecutionContext, project: ProjectResource,
                   osm_extract: xr.Dataset) -> dg.Output[meshes.PairedMeshesOutput]:
     """Visual mesh (per-face class and instance, facade detail) and radio mesh (Mitsuba XML + PLY)."""
@@ -47,7 +49,8 @@ def paired_meshes(context: dg.AssetExecutionContext, project: ProjectResource,
         "build_s": round(time.perf_counter() - t0, 3)})
 
 
-@dg.asset(partitions_def=scene_partitions, code_version=code_version("trajectory"), group_name="scene")
+@dg.asset(partitions_def=scene_partitions, code_version=code_version("trajectory"),
+          deps=[config_dep("trajectory")], group_name="scene")
 def trajectory(context: dg.AssetExecutionContext, project: ProjectResource,
                osm_extract: xr.Dataset) -> dg.Output[xr.Dataset]:
     """Platform poses, velocities and accelerations on the shared clock under each platform's dynamic

@@ -6,14 +6,15 @@ import dagster as dg
 import xarray as xr
 
 from simart_pipeline import previews, provenance
-from simart_pipeline.assets.versioning import code_version, versioned
+from simart_pipeline.assets.versioning import code_version, config_dep, versioned
 from simart_pipeline.partitions import from_scene, scene_weather, split_key
 from simart_pipeline.resources import ProjectResource
 from simart_pipeline.scene.meshes import SceneMeshes
 from simart_pipeline.sensing.sensor_frames import build_sensor_frames
 
 
-@dg.asset(partitions_def=scene_weather, code_version=code_version("sensor_frames"), group_name="sensing", pool="rendering",
+@dg.asset(partitions_def=scene_weather, code_version=code_version("sensor_frames"),
+          deps=[config_dep("sensor_frames")], group_name="sensing", pool="rendering",
           ins={"paired_meshes": dg.AssetIn(partition_mapping=from_scene),
                "trajectory": dg.AssetIn(partition_mapping=from_scene)})
 def sensor_frames(context: dg.AssetExecutionContext, project: ProjectResource,

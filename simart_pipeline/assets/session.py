@@ -4,12 +4,13 @@ import dagster as dg
 import xarray as xr
 
 from simart_pipeline import provenance
-from simart_pipeline.assets.versioning import code_version, versioned
+from simart_pipeline.assets.versioning import code_version, config_dep, versioned
 from simart_pipeline.partitions import from_scene, from_weather_group, scene_weather, split_key
 from simart_pipeline.resources import ProjectResource
 
 
-@dg.asset(partitions_def=scene_weather, code_version=code_version("session"), group_name="session",
+@dg.asset(partitions_def=scene_weather, code_version=code_version("session"),
+          deps=[config_dep("session")], group_name="session",
           ins={"trajectory": dg.AssetIn(partition_mapping=from_scene),
                "cirs": dg.AssetIn(partition_mapping=from_weather_group)})
 def session(context: dg.AssetExecutionContext, project: ProjectResource, trajectory: xr.Dataset,

@@ -19,6 +19,11 @@ def code_version(asset: str) -> str:
     return versions.code_version(asset)
 
 
+def config_dep(asset: str) -> dg.AssetDep:
+    """The stage's dependency on its part of the scene config (``assets.config_sources``)."""
+    return dg.AssetDep(dg.AssetKey(["scene_config", asset]))
+
+
 def partition_version(context: dg.AssetExecutionContext, project, asset: str) -> tuple[str, dict]:
     """(data version, the inputs it digests) of the partition being materialised."""
     scene, sub = split_key(context.partition_key)
@@ -36,6 +41,8 @@ def versioned(context: dg.AssetExecutionContext, project, asset: str, value, met
     version, inputs = partition_version(context, project, asset)
     if isinstance(value, (xr.Dataset, xr.DataTree)):
         value.attrs["data_version"] = version
+    elif hasattr(value, "scene_info"):  # paired meshes: a directory whose scene.json says it
+        value.scene_info["data_version"] = version
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", dg.BetaWarning)  # Output(data_version=...): stable in use since 1.3
         return dg.Output(value, data_version=dg.DataVersion(version),

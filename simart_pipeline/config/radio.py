@@ -7,13 +7,13 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from simart_pipeline.config.base import _Model
-from simart_pipeline.radio.materials import RADIO_MATERIALS, WEATHER_MATERIALS
+from simart_pipeline.vocabulary import RADIO_MATERIALS, WEATHER_MATERIALS
 
 
 class Materials(_Model):
     """Radio material per semantic class, and OSM tag rules that override it.
 
-    Materials are :data:`simart_pipeline.radio.materials.RADIO_MATERIALS` names (ITU-R P.2040-3
+    Materials are :data:`simart_pipeline.vocabulary.RADIO_MATERIALS` names (ITU-R P.2040-3
     Table 3, valid 1-100 GHz, plus water and wet facades). ``tags`` maps an OSM key to a mapping
     of its values to materials; it is merged over :data:`DEFAULT_TAG_MATERIALS` (a key given here
     replaces single values, not the whole key). A feature takes the material of the first rule

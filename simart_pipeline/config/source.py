@@ -9,8 +9,7 @@ from typing import Annotated, Literal, Union
 from pydantic import Field, field_validator, model_validator
 
 from simart_pipeline.config.base import Vec2, _inside_scene_dir, _Model
-from simart_pipeline.radio.materials import RADIO_MATERIALS
-from simart_pipeline.vocabulary import SEMANTIC_CLASS_NAMES
+from simart_pipeline.vocabulary import RADIO_MATERIALS, SEMANTIC_CLASS_NAMES
 
 
 class WorldOrigin(_Model):

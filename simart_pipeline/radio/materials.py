@@ -28,12 +28,9 @@ from xml.sax.saxutils import quoteattr
 
 from scipy.constants import epsilon_0
 
+from simart_pipeline.vocabulary import ITU_MATERIALS, RADIO_MATERIALS, WEATHER_MATERIALS  # noqa: F401 (re-exported)
 
-# ITU-R P.2040 materials that Sionna RT's ITURadioMaterial knows.
-ITU_MATERIALS = (
-    "vacuum", "concrete", "brick", "plasterboard", "wood", "glass", "ceiling_board", "chipboard",
-    "plywood", "marble", "floorboard", "metal", "very_dry_ground", "medium_dry_ground", "wet_ground",
-)
+
 # ITU-R P.2040-3 Table 3: eps' = a f^b, sigma = c f^d (f in GHz), for the dry bases of wet facades.
 ITU_P2040_TABLE3 = {
     "concrete": (5.24, 0.0, 0.0462, 0.7822),
@@ -61,17 +58,6 @@ CUSTOM_MATERIALS: dict[str, CustomMaterial] = {m.name: m for m in (
     CustomMaterial("wet_brick", "rain-soaked brick facade (10 % water by volume)",
                    "ITU-R P.2040-3 Table 3 brick + fresh water, CRIM mixing (Birchak et al. 1974)"),
 )}
-RADIO_MATERIALS: tuple[str, ...] = tuple(ITU_MATERIALS) + tuple(CUSTOM_MATERIALS)
-
-# What each weather does to the materials, by default (a scene's ``materials.rain`` replaces the
-# rainy row); sunny and night keep the dry ones. The reuse rule compares the resulting materials,
-# not the weather names.
-WEATHER_MATERIALS: dict[str, dict[str, str]] = {
-    "sunny": {},
-    "night": {},
-    "rainy": {"medium_dry_ground": "wet_ground", "very_dry_ground": "wet_ground",
-              "concrete": "wet_concrete", "brick": "wet_brick"},
-}
 
 
 def weathers_sharing_materials(weathers) -> dict[str, list[str]]:
