@@ -4,7 +4,8 @@
 - ``<device>/base_link``: x forward, y left, z up (REP 103), pose given as a transform to world.
 - ``<device>/<sensor>``: the sensor body frame, x forward; ``<device>/<sensor>_optical``: camera
   optical frame, z forward, x right, y down (REP 103 ``_optical`` suffix).
-Quaternions are stored scalar-last ``(x, y, z, w)`` as in ROS ``geometry_msgs/Quaternion``.
+Quaternions are stored scalar-last ``(x, y, z, w)`` as in ROS ``geometry_msgs/Quaternion``
+(``vocabulary.QUATERNION_ORDER``).
 """
 
 from __future__ import annotations
@@ -14,7 +15,6 @@ import pymap3d
 from scipy.spatial.transform import Rotation
 
 WORLD = "world"
-QUATERNION_ORDER = "x y z w"
 
 # Rotation from a camera optical frame (z fwd, x right, y down) to its body frame (x fwd, y left, z up).
 OPTICAL_TO_BODY = Rotation.from_matrix(np.array([[0.0, 0.0, 1.0],

@@ -29,7 +29,7 @@ from simart_pipeline.link.kpi_definitions import (DEFINITIONS, NAN_INTERFERENCE,
 from simart_pipeline.link.link_adaptation import select_mcs_outer_loop
 from simart_pipeline.link.ofdm import subcarrier_offsets_hz
 from simart_pipeline.link.sinr import INTERFERENCE_RULE, chunk_steps, sinr_chunk
-from simart_pipeline.vocabulary import SPEED_OF_LIGHT_MPS
+from simart_pipeline.vocabulary import AXES, SPEED_OF_LIGHT_MPS
 
 DEFAULT_MAX_CHUNK_BYTES = 256 * 2**20   # working set of one time chunk
 HARQ_STREAM = 0x4B5049                  # seed stream of the HARQ draws, next to cfg.seed
@@ -340,7 +340,7 @@ def compute_kpis(cirs: xr.Dataset, cfg: SceneConfig, codebook_weights=None, sour
         platform=xr.Variable("platform", np.array(platforms, dtype=str),
                              dict(long_name="receiving platform")),
         beam=_var("beam", np.arange(B, dtype=np.int64), "1", "codebook beam index"),
-        axis=xr.Variable("axis", np.array(["x", "y", "z"]),
+        axis=xr.Variable("axis", np.array(AXES),
                          dict(long_name="axis of the array frame")),
         subcarrier=_var("subcarrier", sc.astype(np.int64), "1",
                         "subcarrier index on the carrier (allocated subcarriers only)"),

@@ -30,7 +30,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from simart_pipeline import clock, frames
 from simart_pipeline.config import Platform, SceneConfig
 from simart_pipeline.mobility import dynamics, path, roads
-from simart_pipeline.vocabulary import AXES, QUATERNION_COMPONENTS
+from simart_pipeline.vocabulary import AXES, QUATERNION_COMPONENTS, QUATERNION_ORDER
 
 POSE_KEYS = ("position_m", "velocity_mps", "acceleration_mps2", "orientation_xyzw", "angular_velocity_radps")
 CAR_MIN_ROAD_WIDTH_M = 3.0  # narrower centre lines are footways, cycleways and paths (osm_tags widths)
@@ -153,7 +153,7 @@ def build_trajectory(cfg: SceneConfig, scene_dir: str | Path | None = None, geom
     for k, (units, long_name) in attrs.items():
         ds[k].attrs.update(units=units, long_name=long_name, frame_id=frames.WORLD)
     ds["angular_velocity_radps"].attrs["frame_id"] = "<platform>/base_link"
-    ds.attrs.update(frame_id=frames.WORLD, quaternion_order=frames.QUATERNION_ORDER,
+    ds.attrs.update(frame_id=frames.WORLD, quaternion_order=QUATERNION_ORDER,
                     pose_rate_hz=cfg.clock.pose_rate_hz,
                     model="; ".join(f"{p.name}: " + ("replayed from " + p.trajectory.path
                                                      if p.trajectory.kind == "replay" else

@@ -22,7 +22,7 @@ from simart_pipeline.config import SceneConfig
 from simart_pipeline.mobility.trajectory import poses_at
 from simart_pipeline.radio.tracer import INVALID_DELAY_S, RX_NEAR_TX_M, RadioScene, TracedPaths
 from simart_pipeline.scene.geometry import SourceGeometry, inside_buildings
-from simart_pipeline.vocabulary import LinkStatus, interaction_flag_attrs, link_status_flag_attrs
+from simart_pipeline.vocabulary import AXES, LinkStatus, interaction_flag_attrs, link_status_flag_attrs
 
 FILL_NOTE = "where valid is false: {}"
 
@@ -185,7 +185,7 @@ def cir_dataset(radio: RadioScene, cfg: SceneConfig, lg: LinkGeometry, paths: Tr
         "rx": ("link", [plats[j].name for j in link_rx]),
         "path": np.arange(n_path),
         "depth": np.arange(paths.interaction.shape[2]),
-        "axis": ["x", "y", "z"],
+        "axis": AXES,
         "euler": ["yaw", "pitch", "roll"],
     })
     rt = cfg.ray_tracing

@@ -30,7 +30,7 @@ from scipy.spatial.transform import Rotation
 from simart_pipeline import frames
 from simart_pipeline.config import WorldOrigin
 from simart_pipeline.sensing.weather import WEATHER_MODELS
-from simart_pipeline.vocabulary import AXES, QUATERNION_COMPONENTS, semantic_flag_attrs
+from simart_pipeline.vocabulary import AXES, QUATERNION_COMPONENTS, QUATERNION_ORDER, semantic_flag_attrs
 
 NONE = "none"  # a text attr that does not apply to the stream's source
 RENDERED = "rendered by simart-pipeline (docs/sensing.md)"
@@ -106,7 +106,7 @@ def stream_attrs(device: str, device_kind: str, sensor: str, sensor_kind: str, t
         "mount_translation_m": list(mount_translation_m), "mount_rpy_deg": list(mount_rpy_deg),
         "mount_quaternion_xyzw": mount_rotation.as_quat().tolist(),
         "mount_comment": MOUNT_COMMENT,
-        "quaternion_order": frames.QUATERNION_ORDER,
+        "quaternion_order": QUATERNION_ORDER,
     }
     if optical:
         attrs["optical_to_sensor_quaternion_xyzw"] = frames.OPTICAL_TO_BODY.as_quat().tolist()
