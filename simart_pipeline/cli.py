@@ -81,6 +81,47 @@ def _label(key) -> str:
     return key if isinstance(key, str) else "|".join(f"{k}={v}" for k, v in key.keys_by_dimension.items())
 
 
+class StepFailed(RuntimeError):
+    """A step of ``simart run`` failed: ``str()`` is the one line that names the partition and the
+    project's own message (file, key path or topic, what is wrong); ``detail`` the full trace."""
+
+    def __init__(self, line: str, detail: str = ""):
+        super().__init__(line)
+        self.detail = detail
+
+
+def _root_cause(error) -> tuple[str, str]:
+    """(``ExcClass: message`` of the innermost cause, every stack) of a Dagster step error: the
+    project's own exception sits under Dagster's "Error occurred while executing op" wrapper."""
+    stacks, err = [], error
+    while err is not None:
+        stacks.append("".join(err.stack) + f"{err.cls_name}: {err.message.strip()}")
+        if err.cause is None:
+            break
+        err = err.cause
+    msg = err.message.strip().splitlines()[0] if err.message.strip() else ""
+    # SerializableErrorInfo's message starts with the (qualified) class name: keep it at the end
+    head, sep, rest = msg.partition(": ")
+    if sep and head.split(".")[-1] == err.cls_name:
+        msg = rest
+    return f"{msg} ({err.cls_name})" if msg else err.cls_name, "\n\nThe above caused:\n\n".join(reversed(stacks))
+
+
+def _failure(result, label: str) -> StepFailed:
+    """The first failed step of a run (or its failed blocking checks), as one line."""
+    failures = [e for e in result.all_events if e.is_step_failure]
+    if failures:
+        step = failures[0].step_key or "step"
+        line, detail = _root_cause(failures[0].step_failure_data.error)
+        return StepFailed(f"{step} ({label}): {line}", detail)
+    failed = [e for e in result.get_asset_check_evaluations() if not e.passed]
+    if failed:
+        c = failed[0]
+        return StepFailed(f"{c.asset_key.to_user_string()} ({label}): asset check {c.check_name} failed: "
+                          f"{c.description or ''}".rstrip(": "))
+    return StepFailed(f"({label}): the run failed")
+
+
 def partition_status(instance, plan, asset: str, key, data_root: Path, paths: list[Path]) -> tuple[bool, str]:
     """(up to date, why not): up to date when the last materialisation recorded in ``instance`` has
     the data version the inputs give now, was written under ``data_root``, and its stores exist."""
@@ -130,7 +171,9 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
     defs = build_definitions(data_root=str(data_root))
     resources = defs.resources
     plan = resources["project"].version_plan(cfg.name)
-    run_config = None if verbose else {"loggers": {"console": {"config": {"log_level": "WARNING"}}}}
+    # Without --verbose Dagster's own log stays quiet (its step-failure traces too): a failure ends
+    # in one line that names the partition and the project's message, the trace only with --verbose.
+    run_config = None if verbose else {"loggers": {"console": {"config": {"log_level": "CRITICAL"}}}}
     t_start = time.perf_counter()
     # Dagster learns the scene's config versions first, so that its own staleness (the UI) agrees.
     report_config_versions(instance, plan)
@@ -163,9 +206,7 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
                                     instance=instance, resources=resources, run_config=run_config,
                                     raise_on_error=False, tags={FORCE_TAG: "true"} if force else None)
             if not result.success:
-                failures = [e for e in result.all_events if e.is_step_failure]
-                msg = failures[0].step_failure_data.error.message.strip() if failures else "run failed"
-                raise RuntimeError(f"{', '.join(stale)} ({label}) failed: {msg}")
+                raise _failure(result, label)
             computed += len(stale)
             progress(f"        done in {time.perf_counter() - t0:.1f} s")
         done += len(names)
@@ -219,8 +260,10 @@ def cmd_run(args) -> int:
     try:
         stores = materialize_scene(Path(args.scene_dir), data_root, args.weather, args.tile, args.verbose,
                                    force=args.force)
-    except RuntimeError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    except StepFailed as exc:
+        if args.verbose and exc.detail:
+            print(exc.detail, file=sys.stderr)
+        print(f"error: {exc}" + ("" if args.verbose else "  (--verbose shows the trace)"), file=sys.stderr)
         return 1
     print("outputs:")
     for asset, paths in stores.items():
