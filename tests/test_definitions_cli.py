@@ -88,3 +88,11 @@ def test_preflight_names_the_fix_when_llvm_is_too_old(monkeypatch):
     monkeypatch.setattr(engine, "_llvm_candidates", lambda: [(15, "/usr/lib/libLLVM-15.so")])
     with pytest.raises(engine.PreflightError, match="libllvm19"):
         engine.preflight()
+
+
+def test_config_observations_use_dagsters_data_version_tag():
+    from dagster._core.definitions.data_version import DATA_VERSION_TAG
+
+    from simart_pipeline.assets import config_sources
+
+    assert config_sources.DATA_VERSION_TAG == DATA_VERSION_TAG

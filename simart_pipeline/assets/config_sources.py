@@ -13,7 +13,6 @@ from __future__ import annotations
 import warnings
 
 import dagster as dg
-from dagster._core.definitions.data_version import DATA_VERSION_TAG  # "dagster/data_version"
 
 from simart_pipeline import versions
 from simart_pipeline.partitions import scene_partitions, scene_tile, scene_weather, scene_weather_group
@@ -21,6 +20,7 @@ from simart_pipeline.radio.materials import WEATHER_GROUPS
 from simart_pipeline.vocabulary import WEATHERS
 
 CONFIG_PREFIX = "scene_config"
+DATA_VERSION_TAG = "dagster/data_version"  # the tag Dagster reads an observation's data version from
 PARTITIONS = {"scene": scene_partitions, "weather": scene_weather, "weather_group": scene_weather_group,
               "tile": scene_tile}
 
