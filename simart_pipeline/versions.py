@@ -26,7 +26,7 @@ from functools import lru_cache
 from pathlib import Path
 
 from simart_pipeline.ckm.grid import scene_tiles
-from simart_pipeline.config import SceneConfig, recording_format
+from simart_pipeline.config import SceneConfig
 from simart_pipeline.radio.materials import WEATHER_GROUP
 
 PACKAGE = Path(__file__).resolve().parent

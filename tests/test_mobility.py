@@ -17,7 +17,7 @@ from simart_pipeline.mobility import roads
 from simart_pipeline.mobility import path as geo
 from simart_pipeline.mobility.trajectory import (build_trajectory, check_clear_of_buildings, plan_platform,
                                                  waypoint_path)
-from simart_pipeline.scene import geometry, source
+from simart_pipeline.scene import source
 from simart_pipeline.scene.geometry import Feature, SourceGeometry
 from simart_pipeline.vocabulary import STANDARD_GRAVITY_MPS2
 from simart_pipeline.validation import scene_problems
