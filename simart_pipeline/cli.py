@@ -195,13 +195,11 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
                 instance, plan, name, key, data_root, stores_of(name, key, data_root, cfg))
             if not ok:
                 stale[name] = why
-        for name in names:
-            if name not in stale:
-                progress(f"[{done + names.index(name) + 1:>2}/{total}] {name} ({label}): up to date")
+        for i, name in enumerate(names):
+            status = f"computing ({stale[name]})" if name in stale else "up to date"
+            progress(f"[{done + i + 1:>2}/{total}] {name} ({label}): {status}")
         if stale:
             t0 = time.perf_counter()
-            for name, why in stale.items():
-                progress(f"[{done + names.index(name) + 1:>2}/{total}] {name} ({label}): computing ({why})")
             result = dg.materialize([*ALL_ASSETS, *ALL_CHECKS], selection=list(stale), partition_key=key,
                                     instance=instance, resources=resources, run_config=run_config,
                                     raise_on_error=False, tags={FORCE_TAG: "true"} if force else None)
