@@ -1,4 +1,8 @@
-"""Checks of a scene beyond its schema: inputs readable, devices placed where they can be."""
+"""Checks of a scene beyond its schema, before any work: every input the config names is opened
+(source file, replay recordings and their topics, sensor-import bags, topics and message types,
+codebook file) and devices are placed where they can be. Each problem is one
+``file: key.path: message`` line; messages speak of what a platform has (waypoints for a planned
+path, recorded instants for a replay)."""
 
 from __future__ import annotations
 
@@ -6,9 +10,15 @@ from pathlib import Path
 
 import numpy as np
 
+from simart_pipeline import clock
 from simart_pipeline.config import ConfigError, SceneConfig, load_scene_config
+from simart_pipeline.link.beams import load_codebook
+from simart_pipeline.mobility import replay
+from simart_pipeline.mobility.bags import Bag
 from simart_pipeline.mobility.trajectory import plan_platform
 from simart_pipeline.scene import geometry, source
+from simart_pipeline.sensing import ros_messages
+from simart_pipeline.sensing.bag_import import MESSAGE_TYPES
 
 
 def scene_problems(scene_dir: str | Path) -> tuple[SceneConfig | None, list[str]]:
@@ -45,6 +55,14 @@ def scene_problems(scene_dir: str | Path) -> tuple[SceneConfig | None, list[str]
                 plan_platform(p, geom)
             except ValueError as exc:
                 problems.append(f"{where}: platforms.{i}.trajectory: {exc}")
+        else:
+            problems += _replay_problems(p, i, scene_dir, geom, where)
+    problems += _import_problems(cfg, scene_dir, where)
+    if cfg.codebook.path is not None:
+        try:
+            load_codebook(scene_dir / cfg.codebook.path, cfg.base_stations[0].array.num_antennas)
+        except ValueError as exc:
+            problems.append(f"{where}: codebook.path: {exc}")
     ground = geom.of_class("ground")
     if ground:
         import shapely
@@ -56,3 +74,42 @@ def scene_problems(scene_dir: str | Path) -> tuple[SceneConfig | None, list[str]
         if not box.intersects(extent):
             problems.append(f"{where}: ckm: the grid does not overlap the scene's ground")
     return cfg, problems
+
+
+def _replay_problems(platform, i: int, scene_dir: Path, geom, where: Path) -> list[str]:
+    """The recording read as the trajectory stage reads it (file, topic, message type, stamps), and
+    its recorded poses checked against the buildings."""
+    try:
+        rec = replay.read_recording(platform.trajectory, scene_dir)
+    except (OSError, ValueError) as exc:  # ReplayError and BagError name the file and the topic
+        return [f"{where}: platforms.{i}.trajectory: {exc}"]
+    pos = rec["position_m"]
+    inside = geometry.inside_buildings(geom, pos[:, 0], pos[:, 1], pos[:, 2])
+    if not inside.any():
+        return []
+    k = int(np.argmax(inside))
+    t_s = float(clock.ns_to_seconds(rec["time_ns"][k] - rec["time_ns"][0]))
+    return [f"{where}: platforms.{i}.trajectory: {int(inside.sum())} of {len(pos)} recorded poses of "
+            f"{platform.name} lie inside a building, the first {t_s:.3f} s into the recording at "
+            f"{np.round(pos[k], 2).tolist()} m: check trajectory.recording_frame (where the recording's "
+            "frame sits in the scene) and the recording"]
+
+
+def _import_problems(cfg: SceneConfig, scene_dir: Path, where: Path) -> list[str]:
+    """Every sensor-import bag opened, every topic and CameraInfo topic there with a type the import reads."""
+    problems = []
+    for i, imp in enumerate(cfg.sensor_imports):
+        try:
+            with Bag(scene_dir / imp.path) as bag:
+                for j, st in enumerate(imp.streams):
+                    for key, topic, types in (("topic", st.topic, MESSAGE_TYPES[st.kind]),
+                                              ("camera_info_topic", st.camera_info_topic, (ros_messages.CAMERA_INFO,))):
+                        if topic is None:
+                            continue
+                        try:
+                            bag.msgtype(topic, types)
+                        except ValueError as exc:
+                            problems.append(f"{where}: sensor_imports.{i}.streams.{j}.{key}: {exc}")
+        except (OSError, ValueError) as exc:
+            problems.append(f"{where}: sensor_imports.{i}.path: {exc}")
+    return problems

@@ -499,3 +499,46 @@ def test_sensing_stage_with_an_imported_and_a_rendered_stream(tiny_scene):
     np.testing.assert_array_equal(gps["time"].values, [0, 500_000_000, 1_000_000_000, 1_500_000_000, 2_000_000_000])
     # the rendered GPS antenna follows the replayed, shifted odometry
     np.testing.assert_allclose(gps["position_enu_m"].values[0], [first.x - 38.0, first.y - 18.0, first.z], atol=1e-9)
+
+
+def test_validate_opens_every_input_the_config_names(tiny_scene):
+    """`simart validate` reads the replay recording and its topic, the sensor-import bags, topics and
+    message types and the codebook file before any work, one `file: key.path: message` line each;
+    a replay inside a building is told about its recording, not about waypoints it does not have."""
+    from simart_pipeline.validation import scene_problems
+
+    shutil.copy(BAGS / HUSKY, tiny_scene / "husky.bag")
+    path = tiny_scene / "scene.yaml"
+    raw = yaml.safe_load(path.read_text())
+    car = raw["platforms"][0]
+    car["trajectory"] = {"kind": "replay", "path": "husky.bag", "topic": "/husky_velocity_controller/odm",
+                         "stamp": "record"}
+    raw["sensor_imports"] = [{"path": "husky.bag", "stamp": "record", "streams": [
+        {"device": "car0", "sensor": "imu", "kind": "imu", "topic": "/fix"},
+        {"device": "car0", "sensor": "gps", "kind": "gps", "topic": "/gps_fix"}]}]
+    np.save(tiny_scene / "beams.npy", np.ones((4, 3), np.complex128))  # 3 antennas, unit norm not met
+    raw["codebook"] = {"path": "beams.npy"}
+    path.write_text(yaml.safe_dump(raw))
+    _, problems = scene_problems(tiny_scene)
+    by_key = {p.split(": ")[1]: p for p in problems}
+    assert all(p.startswith(f"{path}: ") for p in problems) and len(problems) == 4, problems
+    assert "no topic '/husky_velocity_controller/odm'" in by_key["platforms.0.trajectory"]
+    assert "/husky_velocity_controller/odom (nav_msgs/msg/Odometry)" in by_key["platforms.0.trajectory"]
+    assert "holds sensor_msgs/msg/NavSatFix; expected sensor_msgs/msg/Imu" in by_key["sensor_imports.0.streams.0.topic"]
+    assert "no topic '/gps_fix'" in by_key["sensor_imports.0.streams.1.topic"]
+    assert "codebook must be [num_beams, " in by_key["codebook.path"]
+
+    car["trajectory"]["topic"] = "/husky_velocity_controller/odom"
+    first = raw_messages(BAGS / HUSKY, "/husky_velocity_controller/odom")[0][1].pose.pose.position
+    from simart_pipeline.scene.source import build_source_geometry
+
+    geom = build_source_geometry(load_scene_config(tiny_scene), tiny_scene)
+    centre = geom.of_class("building")[0].geometry.representative_point()
+    car["trajectory"]["recording_frame"] = {"translation_m": [centre.x - first.x, centre.y - first.y, 1.0 - first.z]}
+    raw.pop("sensor_imports")
+    raw.pop("codebook")
+    path.write_text(yaml.safe_dump(raw))
+    _, problems = scene_problems(tiny_scene)
+    assert len(problems) == 1 and "platforms.0.trajectory: " in problems[0], problems
+    assert "recorded poses of car0 lie inside a building" in problems[0] and "recording_frame" in problems[0]
+    assert "waypoints" not in problems[0]

@@ -379,6 +379,14 @@ def test_demo_uav_stays_clear_of_buildings_over_its_whole_flight():
     ds = build_trajectory(longer, geom=geom)
     check_clear_of_buildings(ds, geom, where="demo")
     assert norm(ds["velocity_mps"].values[0, -1]) == 0  # it arrived
+    # moved into a building: a planned platform is told of its waypoints, a replayed one of its recording
+    centre = geom.of_class("building")[0].geometry.representative_point()
+    sunk = ds.copy(deep=True)
+    sunk["position_m"][0, 10] = [centre.x, centre.y, 1.0]
+    with pytest.raises(ValueError, match="inside a building.*move its waypoints"):
+        check_clear_of_buildings(sunk, geom, where="demo")
+    with pytest.raises(ValueError, match="inside a building.*check its recording and trajectory.recording_frame"):
+        check_clear_of_buildings(sunk, geom, where="demo", replayed=["uav0"])
 
 
 def test_clothoid_blend_geometry_against_its_definition():

@@ -59,7 +59,8 @@ def trajectory(context: dg.AssetExecutionContext, project: ProjectResource,
     cfg = project.config(scene)
     geom = geometry.from_dataset(osm_extract.load())
     ds = build_trajectory(cfg, project.scene_dir(scene), geom=geom)
-    check_clear_of_buildings(ds, geom, where=f"scene {scene}")
+    check_clear_of_buildings(ds, geom, where=f"scene {scene}",
+                             replayed=[p.name for p in cfg.platforms if p.trajectory.kind == "replay"])
     ds.attrs.update(provenance.attrs(cfg, "trajectory"))
     motion = json.loads(ds.attrs["dynamics"])
     return versioned(context, project, "trajectory", ds, {

@@ -197,8 +197,9 @@ def poses_at(traj: xr.Dataset, platform: str, times_ns: np.ndarray) -> dict[str,
     return out
 
 
-def check_clear_of_buildings(traj: xr.Dataset, geom, where: str = "") -> None:
-    """Raise if any platform's sampled position lies inside a building."""
+def check_clear_of_buildings(traj: xr.Dataset, geom, where: str = "", replayed=()) -> None:
+    """Raise if any platform's sampled position lies inside a building (``replayed``: the names of
+    platforms replayed from a recording, whose message speaks of the recording, not of waypoints)."""
     from simart_pipeline.scene.geometry import inside_buildings
 
     for p in traj["platform"].values:
@@ -207,5 +208,7 @@ def check_clear_of_buildings(traj: xr.Dataset, geom, where: str = "") -> None:
         if inside.any():
             i = int(np.argmax(inside))
             t = int(traj["time"].values[i])
+            what = ("check its recording and trajectory.recording_frame (where the recording's frame sits in "
+                    "the scene)" if p in set(replayed) else "move its waypoints")
             raise ValueError(f"{where}: platform {p} is inside a building at t = {t} ns, "
-                             f"position {np.round(xyz[i], 2).tolist()} m: move its waypoints")
+                             f"position {np.round(xyz[i], 2).tolist()} m: {what}")
