@@ -11,6 +11,8 @@ import pytest
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from simart_pipeline import versions
+
 PACKAGE = Path(__file__).resolve().parents[1] / "simart_pipeline"
 GROUND_FLOOR = ("simart_pipeline.vocabulary", "simart_pipeline.clock")
 DAGSTER_LAYERS = ("simart_pipeline.assets", "simart_pipeline.resources", "simart_pipeline.partitions",
@@ -25,23 +27,8 @@ def _module_name(path: Path) -> str:
 MODULES = {_module_name(p): p for p in sorted(PACKAGE.rglob("*.py"))}
 
 
-def _imports(path: Path) -> set[str]:
-    """Every module of the project that ``path`` imports, at module level or inside a function."""
-    out = set()
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        if isinstance(node, ast.Import):
-            names = [a.name for a in node.names]
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            # `from pkg import name`: the submodule pkg.name where there is one, else pkg itself
-            names = [f"{node.module}.{a.name}" if f"{node.module}.{a.name}" in MODULES else node.module
-                     for a in node.names]
-        else:
-            continue
-        out.update(n for n in names if n in MODULES)
-    return out
-
-
-GRAPH = {m: _imports(p) for m, p in MODULES.items()}
+# The reader that code versions use (versions.import_closure), module level and inside functions.
+GRAPH = {m: set(versions._project_imports(m)) for m in MODULES}
 
 
 def test_the_import_graph_was_read():

@@ -156,20 +156,33 @@ def test_force_recomputes_everything(reruns):
 
 
 def test_data_versions_depend_on_inputs_alone(reruns, tmp_path):
-    """The version Dagster records equals the one computed from the inputs before anything ran; a
-    second plan of the same inputs (another data root, another instance) gives the same versions."""
+    """The version Dagster records equals the one computed from the inputs before anything ran, and
+    another process (another hash seed, another working directory, no instance) computes the same."""
+    import json
+    import subprocess
+    import sys
+
     data, scene, instance, _ = reruns
     cfg = load_scene_config(scene)
-    plan, again = versions.VersionPlan(cfg, scene), versions.VersionPlan(load_scene_config(scene), scene)
-    for asset, sub in (("osm_extract", None), ("trajectory", None), ("cirs", "rainy"), ("session", "night"),
-                       ("ckm_layers", "r0c1"), ("ckm_map", None)):
+    plan = versions.VersionPlan(cfg, scene)
+    parts = [("osm_extract", None), ("trajectory", None), ("cirs", "rainy"), ("session", "night"),
+             ("ckm_layers", "r0c1"), ("ckm_map", None)]
+    code = ("import json, sys; from simart_pipeline import versions; from simart_pipeline.config import "
+            "load_scene_config as L; p = versions.VersionPlan(L(sys.argv[1]), sys.argv[1]); "
+            "print(json.dumps([p.data_version(a, s) for a, s in json.loads(sys.argv[2])]))")
+    res = subprocess.run([sys.executable, "-c", code, str(scene), json.dumps(parts)], capture_output=True,
+                         text=True, cwd=tmp_path, env={**__import__("os").environ, "PYTHONHASHSEED": "12345"},
+                         check=True)
+    elsewhere = dict(zip(parts, json.loads(res.stdout)))
+    for asset, sub in parts:
         key = str(dg.MultiPartitionKey({"scene": "tiny", "weather" if sub in ("sunny", "rainy", "night")
                                         else "tile": sub})) if sub else "tiny"
         record = instance.fetch_materializations(
             dg.AssetRecordsFilter(asset_key=dg.AssetKey(asset), asset_partitions=[key]), limit=1).records[0]
         tags = record.event_log_entry.asset_materialization.tags
-        assert tags["dagster/data_version"] == plan.data_version(asset, sub) == again.data_version(asset, sub)
+        assert tags["dagster/data_version"] == plan.data_version(asset, sub) == elsewhere[(asset, sub)]
         assert tags["dagster/code_version"] == versions.code_version(asset)
-    # sunny and night differ only in their weather; every input of a scene stage is the same
-    assert plan.inputs("cirs", "sunny")["upstream"] == plan.inputs("cirs", "night")["upstream"]
+    # sunny's and night's KPIs read the one dry trace; rain's the wet one
+    assert plan.inputs("kpis", "sunny")["upstream"] == plan.inputs("kpis", "night")["upstream"] \
+        == {"cirs[sunny]": plan.data_version("cirs", "sunny")} != plan.inputs("kpis", "rainy")["upstream"]
     assert plan.data_version("sensor_frames", "sunny") != plan.data_version("sensor_frames", "night")

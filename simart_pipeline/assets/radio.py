@@ -14,7 +14,6 @@ from simart_pipeline.radio.pictures import traced_paths_markdown
 from simart_pipeline.resources import ProjectResource, RayTracerResource
 from simart_pipeline.scene import geometry
 from simart_pipeline.scene.meshes import SceneMeshes
-from simart_pipeline.vocabulary import WEATHERS
 
 
 @dg.asset(partitions_def=scene_weather_group, code_version=code_version("cirs"),
@@ -36,7 +35,7 @@ def cirs(context: dg.AssetExecutionContext, project: ProjectResource, ray_tracer
     lg = radio_cirs.link_geometry(cfg, traj)
     ds = radio_cirs.trace_trajectory(radio, cfg, traj, geom)
     elapsed = time.perf_counter() - t0
-    weathers = weathers_sharing_materials(WEATHERS)[group]
+    weathers = weathers_sharing_materials(cfg.weathers).get(group, [])  # the scene's weathers this trace serves
     ds.attrs.update(provenance.attrs(cfg, "cirs", mitsuba_variant=ray_tracer.variant(), weather_group=group,
                                      weathers=",".join(weathers)))
     n_rx = ds.sizes["time"] * ds.sizes["link"]
