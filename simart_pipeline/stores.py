@@ -3,9 +3,10 @@
 Layout: ``<data_root>/<asset>/<scene>.zarr`` for scene partitions and
 ``<data_root>/<asset>/<scene>/<weather or tile>.zarr`` for two-dimensional ones.
 
-A store is written aside (``.<name>.tmp-<id>``) and renamed into place, so a failed or killed run
-never leaves a half-written store, and a rerun replaces the last good version completely or not at
-all. Before a store is written, it is checked: no inf anywhere, and NaN only in variables whose attrs
+A store is written aside (``.<name>.tmp-<host>-<pid>-<id>``) and swapped into place in one step, so
+a failed or killed run never leaves a half-written store, and a rerun replaces the last good version
+completely or not at all (see :func:`_replace_atomically`; what a killed writer leaves aside is
+cleaned up by the next write, :func:`recover`). Before a store is written, it is checked: no inf anywhere, and NaN only in variables whose attrs
 say what NaN means (``nan_means``).
 
 A store filled region by region (the CKM mosaic: one region per tile, from concurrent runs) is
@@ -18,9 +19,13 @@ ones, false in booleans.
 
 from __future__ import annotations
 
+import ctypes
+import errno
+import hashlib
 import os
 import re
 import shutil
+import socket
 import uuid
 import warnings
 from collections.abc import Callable
@@ -91,8 +96,90 @@ def _plain_strings(ds: xr.Dataset) -> xr.Dataset:
     return ds.assign_coords(coords).assign(data)
 
 
+# Temporaries of a target ``NAME`` are ``.NAME.tmp-<host>-<pid>-<id>`` (the new version being written,
+# or after the swap the old one being deleted) and ``.NAME.old-<host>-<pid>-<id>`` (the old version
+# moved aside, fallback swap only). Host and pid tell whether their writer still lives, so that the
+# next writer (or reader) on the same host can restore or delete what a killed one left behind.
+_HOST = hashlib.sha256(socket.gethostname().encode()).hexdigest()[:6]
+_TEMP = re.compile(r"^\.(?P<name>.+)\.(?P<kind>tmp|old)-(?P<host>[0-9a-f]{6})-(?P<pid>\d+)-[0-9a-f]{8}$")
+
+
+def _temp_name(path: Path, kind: str) -> Path:
+    return path.with_name(f".{path.name}.{kind}-{_HOST}-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+
+
+def _writer_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    return True
+
+
+def _dead_temporaries(path: Path) -> list[tuple[str, Path]]:
+    """(kind, dir) of the temporaries of ``path`` left by dead writers on this host; a pid reused by
+    a live process keeps its temporaries (left behind, never wrongly deleted)."""
+    out = []
+    try:
+        entries = list(path.parent.iterdir())
+    except FileNotFoundError:
+        return out
+    for p in entries:
+        m = _TEMP.match(p.name)
+        if m and m["name"] == path.name and m["host"] == _HOST and not _writer_alive(int(m["pid"])):
+            out.append((m["kind"], p))
+    return out
+
+
+def recover(path: str | Path) -> None:
+    """Undo what a writer of ``path`` killed mid-swap left: a missing ``path`` with its old version
+    moved aside (``.old-``) gets that version back; every other temporary of a dead writer is deleted.
+    Called before every write and every :func:`open_store`."""
+    path = Path(path)
+    dead = _dead_temporaries(path)
+    for kind, p in dead:
+        if kind == "old" and not path.exists():
+            try:
+                os.rename(p, path)  # fails harmlessly if another process put a store there first
+                continue
+            except OSError:
+                pass
+        shutil.rmtree(p, ignore_errors=True)
+
+
+_RENAME_EXCHANGE = 2
+_AT_FDCWD = -100
+try:
+    _renameat2 = ctypes.CDLL(None, use_errno=True).renameat2
+except (AttributeError, OSError):  # not Linux, or a libc older than glibc 2.28
+    _renameat2 = None
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap the directories at ``a`` and ``b`` in one step (Linux renameat2 RENAME_EXCHANGE): true
+    when done, false where the system or file system cannot (then :func:`_replace_atomically` falls
+    back to two renames); OSError when ``b`` is missing (ENOENT) or another error."""
+    if _renameat2 is None:
+        return False
+    if _renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.ENOSYS, errno.EINVAL, errno.EOPNOTSUPP):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
 def _replace_atomically(tmp: Path, path: Path, keep_existing: Callable[[Path], bool] | None = None) -> None:
-    """Swap ``tmp`` into ``path``; the old version stays readable until the final rename.
+    """Swap ``tmp`` into ``path``; at every instant ``path`` is either the old or the new version.
+
+    The swap is one renameat2(RENAME_EXCHANGE): afterwards ``tmp`` holds the old version, which the
+    caller deletes. Where that is not available, the old version is renamed aside (``.old-``) and
+    ``tmp`` renamed in; a writer killed between the two leaves no store at ``path``, which
+    :func:`recover` (run by the next write or :func:`open_store`) undoes by renaming ``.old-`` back.
 
     With ``keep_existing``, a store already at ``path`` (or one that another process renames there
     first) for which it returns true is kept, and ``tmp`` is discarded by the caller."""
@@ -105,9 +192,21 @@ def _replace_atomically(tmp: Path, path: Path, keep_existing: Callable[[Path], b
                 raise
             if keep_existing(path):  # another writer won the race with an equal store
                 return
+    for _ in range(8):  # each retry means another writer created or swapped ``path`` meanwhile
+        try:
+            if _exchange(tmp, path):
+                return  # the old version is now at ``tmp``: the caller deletes it
+            break
+        except FileNotFoundError:
+            try:
+                os.rename(tmp, path)  # nothing there: a plain rename (fails on a non-empty dir)
+                return
+            except OSError as exc:
+                if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+                    raise
     old = None
     if path.exists():
-        old = path.with_name(f".{path.name}.old-{uuid.uuid4().hex[:8]}")
+        old = _temp_name(path, "old")
         os.replace(path, old)
     try:
         os.replace(tmp, path)
@@ -122,18 +221,20 @@ def _replace_atomically(tmp: Path, path: Path, keep_existing: Callable[[Path], b
 def write_directory(path: Path, fill: Callable[[Path], None],
                     keep_existing: Callable[[Path], bool] | None = None) -> Path:
     """Create a directory by calling ``fill(tmp_dir)``, then rename it into place atomically;
-    ``keep_existing(path)`` true keeps what is already there (see :func:`_replace_atomically`)."""
+    ``keep_existing(path)`` true keeps what is already there (see :func:`_replace_atomically`).
+    What dead writers of ``path`` left behind is restored or deleted first (:func:`recover`)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    recover(path)
     if keep_existing is not None and path.exists() and keep_existing(path):
         return path
-    tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
+    tmp = _temp_name(path, "tmp")
     try:
         tmp.mkdir()
         fill(tmp)
         _replace_atomically(tmp, path, keep_existing)
     finally:
-        if tmp.exists():
+        if tmp.exists():  # a failed write, or the old version after the exchange
             shutil.rmtree(tmp, ignore_errors=True)
     return path
 
@@ -222,6 +323,8 @@ def write_region(ds: xr.Dataset, path: str | Path, region: dict[str, slice], chu
 def open_store(path: str | Path, tree: bool = False) -> xr.Dataset | xr.DataTree:
     """Open a store written by :func:`write_store` (lazily)."""
     path = Path(path)
+    if not path.exists():
+        recover(path)  # a writer killed mid-swap may have left the last good version aside
     if not path.exists():
         raise FileNotFoundError(f"no store at {path}: materialise the upstream asset first")
     if tree:

@@ -6,12 +6,16 @@ tile written into its own chunk-aligned region.
   ``tile_complete`` (tile_row, tile_col) with one chunk per tile. ``stores.create_chunked_store``
   writes it aside and renames it into place. A template whose ``template_sha256`` (grid, layers,
   config) differs from the wanted one is replaced, since its tiles belong to another config.
-- A tile first marks itself incomplete, writes its region through ``stores.write_region`` (whole
-  chunks only, and the finite/NaN checks of every store), records its version in
-  ``tile_data_version`` and then marks itself complete; a tile whose recorded version equals the
-  wanted one is up to date (:func:`tile_is_current`) and is not written again. A failed
-  tile leaves the other tiles' chunks untouched and is simply rerun; any subset of tiles in any
-  order gives the same map.
+- A tile first marks itself incomplete (``tile_complete`` false, ``tile_data_version`` -1), writes
+  its region through ``stores.write_region`` (whole chunks only, and the finite/NaN checks of every
+  store), records its version in ``tile_data_version`` and then marks itself complete; a tile whose
+  recorded version equals the wanted one and which is complete is up to date
+  (:func:`tile_is_current`) and is not written again. A failed or killed tile leaves the other
+  tiles' chunks untouched and is simply rerun; any subset of tiles in any order gives the same map.
+- Every chunk file is written aside and renamed into place by zarr's LocalStore (zarr 3.1:
+  ``_atomic_write``), so a kill leaves each chunk old or new, never torn; a tile killed mid-write
+  may mix old and new chunks, which is why its marks are cleared first. The marks are one chunk
+  per tile, so marking one tile never rewrites another's.
 """
 
 from __future__ import annotations
@@ -98,10 +102,15 @@ def write_tile(path: Path, ckm: Ckm, tile: str, ds: xr.Dataset, tile_version: in
     cy, cx = chunk_shape(ckm)
     rows, cols = ckm.shape
     done = zarr.open_array(Path(path) / "tile_complete", mode="r+")
+    version = zarr.open_array(Path(path) / "tile_data_version", mode="r+")
+    # Both marks are cleared before any of the tile's chunks changes and set only after all of them
+    # are written: a run killed in between leaves a tile that is not current, so it is recomputed,
+    # and a previously current tile being rewritten is from then on treated as never written.
     done[r, c] = False
+    version[r, c] = -1
     stores.write_region(ds, path, {"y": sl[0], "x": sl[1]}, chunks={"y": cy, "x": cx},
                         sizes={"y": rows, "x": cols})
-    zarr.open_array(Path(path) / "tile_data_version", mode="r+")[r, c] = tile_version
+    version[r, c] = tile_version
     done[r, c] = True
 
 

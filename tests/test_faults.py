@@ -1,0 +1,333 @@
+"""Issue 16, faults: a run killed (SIGKILL) while writing a store or a CKM tile leaves the last good
+version readable and no partial store visible, and the next run completes the work.
+
+The writers run in subprocesses that are killed at seeded random points (and, deterministically, at
+the one dangerous instant of each protocol); the checks then read what is on disk."""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from simart_pipeline import stores
+
+from conftest import REPO, TESTS
+
+ENV = {**os.environ, "PYTHONPATH": str(REPO)}
+
+
+def _spawn(tmp_path: Path, code: str, *args: str, **env) -> subprocess.Popen:
+    script = tmp_path / "worker.py"
+    script.write_text(textwrap.dedent(code))
+    return subprocess.Popen([sys.executable, str(script), *args], env={**ENV, **env}, cwd=tmp_path,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+
+def _wait_for(p: subprocess.Popen, check, timeout: float = 60.0) -> None:
+    t0 = time.monotonic()
+    while not check():
+        if p.poll() is not None:
+            raise AssertionError(f"worker exited {p.returncode} early: {p.stderr.read().decode()[-2000:]}")
+        if time.monotonic() - t0 > timeout:
+            p.kill()
+            raise AssertionError("worker too slow")
+        time.sleep(0.005)
+
+
+def _kill(p: subprocess.Popen) -> None:
+    p.send_signal(signal.SIGKILL)
+    p.wait()  # reaped: its pid is gone, so what it left counts as a dead writer's
+
+
+def _lines(path: Path) -> list[str]:
+    return path.read_text().splitlines() if path.exists() else []
+
+
+# --- whole stores -------------------------------------------------------------------------------
+
+STORE_WORKER = """
+    import sys
+    from pathlib import Path
+    import numpy as np, xarray as xr
+    from simart_pipeline import stores
+
+    path, log, mode = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3]
+    if mode == "fallback":  # no renameat2: the two-rename swap
+        stores._renameat2 = None
+
+    def version(i):  # 24 variables, 24 chunk files of ~80 kB each, every value i
+        return xr.Dataset({f"v{k}": (("a", "b"), np.full((100, 100), float(i))) for k in range(24)},
+                          attrs={"version": i})
+
+    i = int(sys.argv[4])
+    with open(log, "a") as fh:
+        fh.write("ready\\n"); fh.flush()
+        while True:
+            i += 1
+            stores.write_store(version(i), path)
+            fh.write(f"{i}\\n"); fh.flush()
+"""
+
+
+def _store_version(path: Path) -> int:
+    ds = stores.open_store(path).load()
+    v = int(ds.attrs["version"])
+    assert len(ds.data_vars) == 24
+    for name, var in ds.data_vars.items():
+        assert (var.values == v).all(), f"{name} mixes versions"
+    return v
+
+
+def _ds(i: int) -> xr.Dataset:
+    return xr.Dataset({f"v{k}": (("a", "b"), np.full((100, 100), float(i))) for k in range(24)},
+                      attrs={"version": i})
+
+
+def _check_after_kill(root: Path, path: Path, log: Path, prev: int, base: int) -> int:
+    assert [p.name for p in root.iterdir() if not p.name.startswith(".")] == [path.name], \
+        "a partial store is visible"
+    for p in root.iterdir():  # hidden leftovers: only this store's temporaries
+        if p == path:
+            continue
+        assert p.name.startswith(f".{path.name}.tmp-") or p.name.startswith(f".{path.name}.old-"), p.name
+    done = [int(x) for x in _lines(log) if x != "ready"]
+    # the last version the worker finished (or the one before it started), or the one it was writing
+    allowed = (done[-1], done[-1] + 1) if done else (prev, base + 1)
+    v = _store_version(path)  # opens (restoring a version moved aside, in the fallback swap)
+    assert v in allowed, f"store holds version {v}, expected one of {allowed}"
+    return v
+
+
+@pytest.mark.parametrize("mode,trials", [("exchange", 8), ("fallback", 5)])
+def test_a_store_write_killed_at_random_points(mode, trials, tmp_path):
+    rng = random.Random(16 + trials)
+    root = tmp_path / "data"
+    path = root / "s.zarr"
+    stores.write_store(_ds(0), path)
+    v = 0
+    for trial in range(trials):
+        log = tmp_path / f"log{trial}"
+        base = (trial + 1) * 1000  # trial t writes versions t*1000+1, t*1000+2, ...
+        p = _spawn(tmp_path, STORE_WORKER, str(path), str(log), mode, str(base))
+        _wait_for(p, lambda: "ready" in _lines(log))
+        time.sleep(rng.uniform(0.0, 0.6))  # a few writes of ~50 ms each: lands anywhere in one
+        _kill(p)
+        v = _check_after_kill(root, path, log, v, base)
+    # the next write completes and leaves no temporaries of dead writers behind
+    stores.write_store(_ds(-1), path)
+    assert _store_version(path) == -1
+    assert sorted(p.name for p in root.iterdir()) == [path.name]
+
+
+KILL_AT = """
+    import os, signal, sys
+    from pathlib import Path
+    import numpy as np, xarray as xr
+    from simart_pipeline import stores
+
+    path, where = Path(sys.argv[1]), sys.argv[2]
+    die = lambda: os.kill(os.getpid(), signal.SIGKILL)
+    if where == "between_renames":  # fallback swap: old version moved aside, new not yet in
+        stores._renameat2 = None
+        real = os.replace
+        def replace(src, dst):
+            if ".tmp-" in Path(src).name:
+                die()
+            return real(src, dst)
+        stores.os.replace = replace
+    elif where == "after_exchange":  # new version in, old one (now at .tmp-) not yet deleted
+        real_exchange = stores._exchange
+        def exchange(a, b):
+            real_exchange(a, b)
+            die()
+        stores._exchange = exchange
+    stores.write_store(xr.Dataset({f"v{k}": (("a", "b"), np.full((100, 100), 2.0)) for k in range(24)},
+                                  attrs={"version": 2}), path)
+"""
+
+
+@pytest.mark.parametrize("where,expected", [("between_renames", 1), ("after_exchange", 2)])
+def test_a_kill_at_the_swap_leaves_one_version(where, expected, tmp_path):
+    root = tmp_path / "data"
+    path = root / "s.zarr"
+    stores.write_store(_ds(1), path)
+    p = _spawn(tmp_path, KILL_AT, str(path), where)
+    assert p.wait(60) == -signal.SIGKILL, p.stderr.read().decode()
+    hidden = [q.name for q in root.iterdir() if q.name.startswith(".")]
+    if where == "between_renames":  # the window: nothing at the path, the old version aside
+        assert not path.exists() and any(".old-" in n for n in hidden)
+    else:
+        assert path.exists() and any(".tmp-" in n for n in hidden)
+    assert _store_version(path) == expected  # open_store restores the version moved aside
+    assert path.exists()
+    stores.write_store(_ds(3), path)
+    assert _store_version(path) == 3
+    assert sorted(q.name for q in root.iterdir()) == [path.name]
+
+
+def test_temporaries_of_live_writers_and_other_stores_are_left_alone(tmp_path):
+    path = tmp_path / "s.zarr"
+    stores.write_store(_ds(1), path)
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    host = stores._HOST
+    live = tmp_path / f".s.zarr.tmp-{host}-{os.getpid()}-0123abcd"  # this process: alive
+    other = tmp_path / f".s.zarr2.tmp-{host}-{dead.pid}-0123abcd"  # another store's
+    stale = tmp_path / f".s.zarr.tmp-{host}-{dead.pid}-0123abcd"
+    foreign = tmp_path / f".s.zarr.old-ffffff-{dead.pid}-0123abcd"  # another host's: can't tell
+    for d in (live, other, stale, foreign):
+        d.mkdir()
+    stores.write_store(_ds(2), path)
+    assert live.exists() and other.exists() and foreign.exists() and not stale.exists()
+    assert _store_version(path) == 2
+
+
+# --- CKM mosaic tiles ---------------------------------------------------------------------------
+
+TILE_WORKER = """
+    import sys, time
+    from pathlib import Path
+    import numpy as np, xarray as xr
+    from simart_pipeline import stores
+    from simart_pipeline.ckm import mosaic
+    from simart_pipeline.ckm.grid import cell_centres, scene_tiles, tile_slices
+    from simart_pipeline.config import Ckm
+
+    path, log, version, stall = Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
+    ckm = Ckm(center_m=(0, 0), size_m=(1600, 1600), cell_size_m=4, height_m=1.5, tiles=(4, 4))
+    y, x = cell_centres(ckm)
+    LAYERS = [f"l{k}" for k in range(12)]
+    spec = {n: (("height", "y", "x"), np.float64, {"nan_means": "not computed"}) for n in LAYERS}
+    coords = {"height": (("height",), np.array([1.5]), {}), "y": (("y",), y, {}), "x": (("x",), x, {})}
+    mosaic.ensure_template(path, ckm, spec, coords, {}, map_version="m1")
+    fh = open(log, "a")
+    say = lambda s: (fh.write(s + "\\n"), fh.flush())
+    if stall != "-":  # stop for good in the middle of tile `stall`: after its first layer's chunk
+        real = stores.write_region
+        def write_region(ds, p, region, chunks, sizes):
+            if writing[0] != stall:
+                return real(ds, p, region, chunks, sizes)
+            real(ds[LAYERS[:1]], p, region, chunks, sizes)
+            say("half"); time.sleep(600)
+        stores.write_region = write_region
+    writing = [None]
+    say("ready")
+    for i, tile in enumerate(scene_tiles(ckm)):
+        if mosaic.tile_is_current(path, tile, "m1", version) and tile != stall:
+            continue
+        sy, sx = tile_slices(ckm, tile)
+        ds = xr.Dataset({n: (("height", "y", "x"), np.full((1, sy.stop - sy.start, sx.stop - sx.start),
+                                                          version * 100.0 + i)) for n in LAYERS})
+        say("begin " + tile)
+        writing[0] = tile
+        mosaic.write_tile(path, ckm, tile, ds, version)
+        say("end " + tile)
+    say("finished")
+"""
+
+
+def _tiles():
+    from simart_pipeline.ckm.grid import scene_tiles
+    from simart_pipeline.config import Ckm
+
+    ckm = Ckm(center_m=(0, 0), size_m=(1600, 1600), cell_size_m=4, height_m=1.5, tiles=(4, 4))
+    return ckm, scene_tiles(ckm)
+
+
+def _run_tiles(tmp_path, path, log, version, stall="-"):
+    return _spawn(tmp_path, TILE_WORKER, str(path), str(log), str(version), stall)
+
+
+def _chunk_mtimes(path: Path, tile: str) -> dict[str, int]:
+    from simart_pipeline.ckm.grid import parse_tile_key
+
+    r, c = parse_tile_key(tile)
+    files = [path / f"l{k}" / "c" / "0" / str(r) / str(c) for k in range(12)]
+    files += [path / "tile_complete" / "c" / str(r) / str(c), path / "tile_data_version" / "c" / str(r) / str(c)]
+    return {str(f): f.stat().st_mtime_ns for f in files if f.exists()}
+
+
+def _check_mosaic(path: Path, version: int, must_be_current: list[str]) -> list[str]:
+    """Every current tile reads its own values; returns the current tiles."""
+    from simart_pipeline.ckm import mosaic
+    from simart_pipeline.ckm.grid import tile_slices
+
+    ckm, tiles = _tiles()
+    ds = mosaic.open_map(path).load()  # the store opens
+    current = []
+    for i, tile in enumerate(tiles):
+        if mosaic.tile_is_current(path, tile, "m1", version):
+            sy, sx = tile_slices(ckm, tile)
+            for k in range(12):
+                assert (ds[f"l{k}"].values[:, sy, sx] == version * 100.0 + i).all(), (tile, k)
+            current.append(tile)
+    assert set(must_be_current) <= set(current)
+    return current
+
+
+def test_a_tile_write_killed_at_random_points(tmp_path):
+    rng = random.Random(1616)
+    path = tmp_path / "map.zarr"
+    _, tiles = _tiles()
+    current: list[str] = []
+    for trial in range(4):
+        log = tmp_path / f"log{trial}"
+        p = _run_tiles(tmp_path, path, log, 1)
+        _wait_for(p, lambda: "ready" in _lines(log))
+        time.sleep(rng.uniform(0.0, 0.3))  # a tile takes some 50-100 ms
+        _kill(p)
+        lines = _lines(log)
+        ended = [ln.split()[1] for ln in lines if ln.startswith("end ")]
+        begun = [ln.split()[1] for ln in lines if ln.startswith("begin ")]
+        current = _check_mosaic(path, 1, current + ended)
+        if begun and begun[-1] not in ended:  # killed inside this tile: not current, whatever it holds
+            assert begun[-1] not in current
+    assert "finished" not in _lines(log) and len(current) < len(tiles), "no kill landed before the end"
+    before = {t: _chunk_mtimes(path, t) for t in current}
+    log = tmp_path / "log_final"
+    p = _run_tiles(tmp_path, path, log, 1)
+    assert p.wait(120) == 0, p.stderr.read().decode()
+    rewritten = [ln.split()[1] for ln in _lines(log) if ln.startswith("begin ")]
+    assert rewritten == [t for t in tiles if t not in current]  # only the missing tiles
+    assert _check_mosaic(path, 1, tiles) == tiles
+    assert {t: _chunk_mtimes(path, t) for t in current} == before  # finished tiles not rewritten
+
+
+def test_a_tile_killed_mid_write_is_not_current(tmp_path):
+    """Deterministic: killed after one layer's chunk of a tile, first as a new tile, then while
+    rewriting a tile that was current at an older version (its marks are cleared first)."""
+    path = tmp_path / "map.zarr"
+    _, tiles = _tiles()
+    log = tmp_path / "log0"
+    p = _run_tiles(tmp_path, path, log, 1, stall=tiles[0])
+    _wait_for(p, lambda: "half" in _lines(log))
+    _kill(p)
+    assert (path / "l0" / "c" / "0" / "0" / "0").exists()  # the tile's first chunk is written
+    assert _check_mosaic(path, 1, []) == []
+    p = _run_tiles(tmp_path, path, tmp_path / "log1", 1)
+    assert p.wait(120) == 0, p.stderr.read().decode()
+    assert _check_mosaic(path, 1, tiles) == tiles
+    # version 2 of the inputs: rewriting tile r0c1 is killed half way
+    log = tmp_path / "log2"
+    p = _run_tiles(tmp_path, path, log, 2, stall=tiles[1])
+    _wait_for(p, lambda: "half" in _lines(log))
+    _kill(p)
+    from simart_pipeline.ckm import mosaic
+
+    assert not mosaic.tile_is_current(path, tiles[1], "m1", 1)  # the old version's mark is gone
+    assert not mosaic.tile_is_current(path, tiles[1], "m1", 2)
+    assert mosaic.tile_is_current(path, tiles[0], "m1", 2)
+    assert mosaic.tile_is_current(path, tiles[2], "m1", 1)  # the others keep their version
+    p = _run_tiles(tmp_path, path, tmp_path / "log3", 2)
+    assert p.wait(120) == 0, p.stderr.read().decode()
+    assert _check_mosaic(path, 2, tiles) == tiles
