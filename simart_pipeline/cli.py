@@ -1,4 +1,9 @@
-"""``simart``: run a scene end to end, validate it, list scenes, build a scene, open the Dagster UI."""
+"""``simart``: run a scene end to end, validate it, list scenes, build a scene, open the Dagster UI.
+
+Every failure of a command ends with one line on stderr, ``error: <file>: <key path or topic>: <what
+is wrong>`` (the project's own message, or the innermost exception's with its class), and a non-zero
+exit status; the stack trace is printed only with ``--verbose`` (:func:`main`).
+"""
 
 from __future__ import annotations
 
@@ -8,6 +13,7 @@ import shutil
 import subprocess
 import sys
 import time
+import traceback
 from pathlib import Path
 
 from simart_pipeline import registry
@@ -27,15 +33,48 @@ def _prepare_dagster_home() -> Path:
     return home
 
 
+class CliError(Exception):
+    """A command's failure whose message is already the one line to print (file: topic: problem)."""
+
+
 def _print_problems(problems: list[str]) -> None:
     for p in problems:
-        print(f"  - {p}", file=sys.stderr)
+        print(f"  - {' '.join(p.split())}", file=sys.stderr)  # one line each (YAML errors span several)
+
+
+def _os_problem(exc: OSError) -> str:
+    """``file: what is wrong`` of an OSError (its own text repeats the errno and quotes the file)."""
+    files = " -> ".join(str(f) for f in (exc.filename, exc.filename2) if f is not None)
+    what = exc.strerror or str(exc)
+    return f"{files}: {what}" if files else what
+
+
+def _check_parent(out: Path, what: str) -> None:
+    """Refuse ``out`` under a file (mkdir would only say "File exists", naming the file)."""
+    for anc in Path(out).absolute().parents:
+        if anc.exists():
+            if not anc.is_dir():
+                raise CliError(f"{out}: {what}: {anc} is a file, not a directory")
+            return
+
+
+def _scene_problems(scene_dir):
+    """``validation.scene_problems``, with a scene.yaml that cannot be read or decoded reported as
+    a problem of that file rather than raised (the config loader raises those as they come)."""
+    from simart_pipeline.validation import scene_problems
+
+    try:
+        return scene_problems(scene_dir)
+    except UnicodeDecodeError as exc:
+        return None, [f"{Path(scene_dir) / 'scene.yaml'}: not UTF-8 text: {exc.reason} at byte {exc.start}"]
+    except OSError as exc:
+        return None, [f"{Path(scene_dir) / 'scene.yaml'}: cannot be read: {_os_problem(exc)}"]
 
 
 def cmd_validate(args) -> int:
-    from simart_pipeline.validation import scene_problems
-
-    cfg, problems = scene_problems(args.scene_dir)
+    if not Path(args.scene_dir).is_dir():
+        raise CliError(f"{args.scene_dir}: no such directory (give the directory that holds scene.yaml)")
+    cfg, problems = _scene_problems(args.scene_dir)
     if problems:
         print(f"{args.scene_dir}: {len(problems)} problem(s):", file=sys.stderr)
         _print_problems(problems)
@@ -241,28 +280,22 @@ def store_of(asset: str, key, data_root: Path) -> Path:
 
 def cmd_run(args) -> int:
     from simart_pipeline import engine
-    from simart_pipeline.validation import scene_problems
 
     try:
         backend = engine.preflight()
     except engine.PreflightError as exc:
         print(f"preflight: {exc}", file=sys.stderr)
         return 3
-    cfg, problems = scene_problems(args.scene_dir)
+    cfg, problems = _scene_problems(args.scene_dir)
     if problems:
         print(f"{args.scene_dir}: {len(problems)} problem(s); nothing was run:", file=sys.stderr)
         _print_problems(problems)
         return 1
     data_root = Path(args.data or registry.default_data_root()).resolve()
     print(f"scene {cfg.name!r} from {Path(args.scene_dir).resolve()}; backend {backend}; data root {data_root}")
-    try:
-        stores = materialize_scene(Path(args.scene_dir), data_root, args.weather, args.tile, args.verbose,
-                                   force=args.force)
-    except StepFailed as exc:
-        if args.verbose and exc.detail:
-            print(exc.detail, file=sys.stderr)
-        print(f"error: {exc}" + ("" if args.verbose else "  (--verbose shows the trace)"), file=sys.stderr)
-        return 1
+    # a failed step raises StepFailed: main prints its one line (and its trace with --verbose)
+    stores = materialize_scene(Path(args.scene_dir), data_root, args.weather, args.tile, args.verbose,
+                               force=args.force)
     print("outputs:")
     for asset, paths in stores.items():
         for p in paths:
@@ -317,13 +350,13 @@ def cmd_scene_build(args) -> int:
     from simart_pipeline.scene.build import build_scene
 
     t0 = time.perf_counter()
-    try:
+    _check_parent(Path(args.out), "--out")
+    try:  # the builders' own errors (ValueError) name the file and the problem: main prints them
         info = build_scene(args.source, args.out, origin=args.origin, bbox_deg=args.bbox, force=args.force,
                            frequency_hz=args.carrier_frequency_hz, storey_height_m=args.storey_height_m,
                            facade_detail=not args.no_facade_detail)
-    except (ValueError, OSError) as exc:  # the builders' errors name the file and the problem
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+    except OSError as exc:
+        raise CliError(f"{args.out}: cannot build the scene there: {_os_problem(exc)}") from exc
     c = info["counts"]
     origin = info.get("origin")
     where = (f"origin {origin['latitude_deg']:.7f}, {origin['longitude_deg']:.7f}" if origin else "no geodetic origin")
@@ -341,33 +374,51 @@ def cmd_ckm(args) -> int:
     from simart_pipeline.ckm.maps import open_scene_map
     from simart_pipeline.config import ConfigError, load_scene_config
 
+    from simart_pipeline.ckm.maps import map_groups, map_name_for_weather, map_path
+
     data_root = Path(args.data or reg.default_data_root()).resolve()
+    out = Path(args.export) if args.export else None
+    if out is not None and out.suffix != ".zarr":  # checked before anything is opened or computed
+        raise CliError(f"{out}: --export: give a .zarr path (a standalone copy of the map)")
+    scene_dir = Path(args.scene) if Path(args.scene, "scene.yaml").is_file() else \
+        reg.scene_dir(args.scene, data_root, reg.default_scenes_root())
     try:
-        scene_dir = Path(args.scene) if Path(args.scene, "scene.yaml").is_file() else \
-            reg.scene_dir(args.scene, data_root, reg.default_scenes_root())
         cfg = load_scene_config(scene_dir)
-        ds = open_scene_map(data_root, cfg, args.weather)
-    except (ConfigError, FileNotFoundError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+    except UnicodeDecodeError as exc:
+        raise CliError(f"{Path(scene_dir) / 'scene.yaml'}: not UTF-8 text: {exc.reason}") from exc
+    source = map_path(data_root, cfg.name, map_name_for_weather(cfg, args.weather) if args.weather
+                      else next(iter(map_groups(cfg))))
+    ds = open_scene_map(data_root, cfg, args.weather)
     if args.layer:
         missing = [v for v in args.layer if v not in ds.data_vars]
         if missing:
-            print(f"error: no layer {', '.join(missing)}; layers: {', '.join(sorted(ds.data_vars))}", file=sys.stderr)
-            return 1
+            raise CliError(f"{source}: --layer: no layer {', '.join(missing)}; layers: "
+                           f"{', '.join(sorted(ds.data_vars))}")
         ds = ds[list(args.layer)]
-    if args.export:
+    if out is not None:
         from simart_pipeline import stores as zarr_stores
 
-        out = Path(args.export)
-        if out.suffix != ".zarr":
-            print(f"error: --export {out}: give a .zarr path (a standalone copy of the map)", file=sys.stderr)
-            return 1
-        zarr_stores.write_store(ds.load(), out)
+        _check_parent(out, "--export")
+        _check_export_path(out, source)
+        try:
+            zarr_stores.write_store(ds.load(), out)
+        except OSError as exc:
+            raise CliError(f"{out}: --export: cannot write there: {_os_problem(exc)}") from exc
         print(f"wrote {out}")
         return 0
     print(ds)
     return 0
+
+
+def _check_export_path(out: Path, source: Path) -> None:
+    """An export replaces ``out`` whole: refuse where that would destroy something else (a directory
+    or file that is not a Zarr store, the map itself or a directory holding it)."""
+    o, src = out.resolve(), source.resolve()
+    if o == src or o in src.parents or src in o.parents:
+        raise CliError(f"{out}: --export: is (or holds, or lies inside) the map {source} itself; "
+                       "give a path outside the data root's ckm stores")
+    if out.exists() and not (out.is_dir() and (out / "zarr.json").is_file()):
+        raise CliError(f"{out}: --export: exists and is not a Zarr store; refusing to replace it")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -376,6 +427,11 @@ def build_parser() -> argparse.ArgumentParser:
         description="simart-pipeline: turn a scene (OpenStreetMap extract, mesh, or procedural layout) into a "
                     "synchronized multimodal ISAC dataset: trajectories, camera/LiDAR/IMU/GPS streams, "
                     "Sionna RT channels, KPIs and channel knowledge maps, as Zarr stores.")
+    p.add_argument("--verbose", action="store_true", help="print the stack trace of a failure")
+    # the same flag after the command; SUPPRESS keeps a flag given before the command
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--verbose", action="store_true", default=argparse.SUPPRESS,
+                        help="print the stack trace of a failure")
     sub = p.add_subparsers(dest="command", required=True)
     r = sub.add_parser("run", help="materialise every asset of a scene on the embedded Dagster instance",
                        description="Validate and register SCENE_DIR, then materialise those of its asset partitions "
@@ -386,16 +442,17 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--weather", nargs="+", metavar="W", help="only these weathers (sunny, rainy, night)")
     r.add_argument("--tile", nargs="+", metavar="T", help="only these CKM tiles (r<row>c<col>)")
     r.add_argument("--data", metavar="DIR", help="data root for the stores (default: ./data or $SIMART_DATA)")
-    r.add_argument("--verbose", action="store_true", help="show Dagster's own event log")
+    r.add_argument("--verbose", action="store_true", default=argparse.SUPPRESS,
+                   help="show Dagster's own event log, and the stack trace of a failure")
     r.add_argument("--force", action="store_true",
                    help="recompute every partition, even those whose data version is up to date")
     r.set_defaults(func=cmd_run)
-    v = sub.add_parser("validate", help="check a scene's config and inputs",
+    v = sub.add_parser("validate", parents=[common], help="check a scene's config and inputs",
                        description="Check SCENE_DIR/scene.yaml against the schema and the scene's inputs; report "
                                    "every problem with its file and key path. Exit status 1 on any problem.")
     v.add_argument("scene_dir", metavar="SCENE_DIR")
     v.set_defaults(func=cmd_validate)
-    s = sub.add_parser("scenes", help="list the scenes under scenes/",
+    s = sub.add_parser("scenes", parents=[common], help="list the scenes under scenes/",
                        description="List every directory under the scenes root that holds a scene.yaml.")
     s.add_argument("--scenes-root", metavar="DIR", help="default: the repository's scenes/ or $SIMART_SCENES")
     s.set_defaults(func=cmd_scenes)
@@ -407,7 +464,7 @@ def build_parser() -> argparse.ArgumentParser:
                         description="Scene construction commands.")
     scs = sc.add_subparsers(dest="scene_command", required=True)
     b = scs.add_parser(
-        "build", help="an OSM extract or a mesh to paired visual and radio meshes",
+        "build", parents=[common], help="an OSM extract or a mesh to paired visual and radio meshes",
         description="Build DIR/radio/scene.xml (+ PLY meshes, loadable by sionna.rt.load_scene), the visual mesh "
                     "with per-face semantic class and instance id under DIR/visual/, and DIR/scene.json (origin, "
                     "counts, materials, attribution). SOURCE is an OSM extract (.osm, .osm.pbf) or a mesh "
@@ -425,7 +482,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="storey height for building:levels and window rows (default 3)")
     b.add_argument("--no-facade-detail", action="store_true", help="no window frames on the visual mesh")
     b.set_defaults(func=cmd_scene_build)
-    k = sub.add_parser("ckm", help="show a scene's channel knowledge map (xarray) or export a copy",
+    k = sub.add_parser("ckm", parents=[common], help="show a scene's channel knowledge map (xarray) or export a copy",
                        description="Open the mosaic CKM store of a materialised scene as an xarray dataset. "
                                    "In Python: simart_pipeline.ckm.maps.open_scene_map(data_root, cfg, weather).")
     k.add_argument("scene", help="scene name (registered by `simart run`) or scene directory")
@@ -434,15 +491,43 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--export", metavar="OUT.zarr", help="write the map (or the chosen layers) to a standalone Zarr store")
     k.add_argument("--data", help="data root (default data/ or $SIMART_DATA)")
     k.set_defaults(func=cmd_ckm)
-    f = sub.add_parser("preflight", help="check that Sionna RT can run here (libLLVM >= 17 or CUDA)",
+    f = sub.add_parser("preflight", parents=[common], help="check that Sionna RT can run here (libLLVM >= 17 or CUDA)",
                        description="Report the ray-tracing backend, or what is missing and how to fix it.")
     f.set_defaults(func=cmd_preflight)
     return p
 
 
+def _error_line(exc: BaseException) -> str:
+    """The one line of a failure: the project's own errors (StepFailed, CliError, the ValueErrors of
+    config, stores, scene building, replay) already name the file and the problem; an OSError is
+    told as ``file: what``; anything else gets its class name appended."""
+    from simart_pipeline.config import ConfigError
+
+    if isinstance(exc, ConfigError) and len(exc.problems) > 1:
+        _print_problems(exc.problems[:-1])
+        return f"{len(exc.problems)} problems, the last: {' '.join(exc.problems[-1].split())}"
+    if isinstance(exc, OSError):
+        return f"{_os_problem(exc)} ({type(exc).__name__})"
+    msg = " ".join(str(exc).split())
+    own = isinstance(exc, (StepFailed, CliError)) or (
+        isinstance(exc, ValueError) and type(exc).__module__.startswith("simart_pipeline."))
+    return msg if own and msg else f"{msg} ({type(exc).__name__})" if msg else type(exc).__name__
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run one command; any failure ends in one ``error:`` line and exit status 1, its trace only
+    with ``--verbose``."""
     args = build_parser().parse_args(argv)
-    return args.func(args)
+    args.verbose = getattr(args, "verbose", False)
+    try:
+        return args.func(args)
+    except Exception as exc:
+        if args.verbose:
+            detail = exc.detail if isinstance(exc, StepFailed) and exc.detail else None
+            print(detail or "".join(traceback.format_exception(exc)).rstrip(), file=sys.stderr)
+        hint = "" if args.verbose or isinstance(exc, CliError) else "  (--verbose shows the trace)"
+        print(f"error: {_error_line(exc)}{hint}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

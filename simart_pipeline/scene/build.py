@@ -81,9 +81,18 @@ def paired_meshes_for_scene(cfg: SceneConfig, scene_dir: Path | None, geom: Sour
     return meshes.PairedMeshesOutput(m, info, cfg.materials.thickness_m, cfg.ofdm.carrier_frequency_hz)
 
 
-def check_out_dir(out: Path, force: bool) -> None:
-    """Refuse an existing non-empty ``out`` unless ``force`` (the build then replaces it whole)."""
+def check_out_dir(out: Path, force: bool, source: Path | None = None) -> None:
+    """Refuse an existing non-empty ``out`` unless ``force`` (the build then replaces it whole), and
+    always an ``out`` whose replacement would destroy more than a build: the working directory or one
+    of its parents, a file system root, or a directory holding the source file."""
     out = Path(out)
+    o = out.resolve()
+    cwd = Path.cwd().resolve()
+    if out.name in ("", ".", "..") or o == cwd or o in cwd.parents or o == Path(o.anchor):
+        raise SceneBuildError(f"{out}: unsafe output directory (the working directory, one of its parents "
+                              "or a root); give a directory of its own")
+    if source is not None and o in Path(source).resolve().parents:
+        raise SceneBuildError(f"{out}: holds the source file {source}; give an output directory outside it")
     if out.exists() and not out.is_dir():
         raise SceneBuildError(f"{out}: exists and is not a directory")
     if out.is_dir() and any(out.iterdir()) and not force:
@@ -109,7 +118,7 @@ def build_scene(source: str | Path, out: str | Path, *, origin: tuple[float, flo
     kind = source_kind(source)
     if not source.is_file():
         raise SceneBuildError(f"{source}: no such file")
-    check_out_dir(out, force)
+    check_out_dir(out, force, source)
     materials = materials or Materials()
     info = {"source": {"kind": kind, "file": source.name, "sha256": _sha256(source)}}
     if kind == "osm":
