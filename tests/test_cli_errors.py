@@ -1,9 +1,16 @@
 """A failure inside any asset ends `simart run` with one line naming the partition and the
-project's own message, exit status 1, and no stack trace unless --verbose."""
+project's own message, exit status 1, and no stack trace unless --verbose; so does every failure of
+`simart scene build`, `simart ckm` (its export) and `simart validate`, whose last line names the file,
+the key or topic and what is wrong."""
 
+import os
 import shutil
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
+from conftest import REPO
 
 from simart_pipeline import versions
 from simart_pipeline.assets import versioning
@@ -58,3 +65,182 @@ def test_a_failure_inside_an_asset_is_one_line(asset, materialised, monkeypatch,
     assert main(["run", str(scene), "--data", str(data), "--weather", "sunny", "--tile", "r0c0", "--verbose"]) == 1
     out, err = capsys.readouterr()
     assert "Traceback" in out + err or 'File "' in out + err  # the trace, when asked for
+
+
+# --- the other commands: scene build, ckm (export), validate --------------------------------------
+
+URBAN = REPO / "scenes" / "urban" / "urban.osm"  # a small valid extract
+
+
+def _fails_with_one_line(argv, capsys, *parts, code=1) -> str:
+    """``simart ARGV`` exits ``code``; the last line of stderr holds every one of ``parts`` (the
+    file, the key or topic, what is wrong) and nothing prints a trace; returns that line."""
+    capsys.readouterr()
+    if code == 2:  # argparse: a bad argument value
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        got = e.value.code
+    else:
+        got = main(argv)
+    out, err = capsys.readouterr()
+    assert got == code, out + err
+    last = err.strip().splitlines()[-1]
+    for part in parts:
+        assert str(part) in last, (part, last)
+    assert "Traceback" not in out + err
+    return last
+
+
+@pytest.fixture
+def bad_sources(tmp_path):
+    d = tmp_path / "src"
+    d.mkdir()
+    (d / "malformed.osm").write_text("<osm version='0.6'><node id='1' lat='48.1' lon='10.0'><tag k='a'")
+    (d / "empty.osm").write_text("<?xml version='1.0'?>\n<osm version='0.6'></osm>\n")
+    (d / "garbage.osm.pbf").write_bytes(bytes(range(256)) * 2)
+    (d / "broken.obj").write_text("v 0 0 0\nv 1 0 0\nf 1 2 9\n")
+    (d / "broken.ply").write_bytes(b"garbage\x00\x01")
+    (d / "notes.txt").write_text("hello")
+    return d
+
+
+@pytest.mark.parametrize("source,parts", [
+    ("malformed.osm", ["malformed.osm: not a readable OSM file", "XML parsing error"]),
+    ("garbage.osm.pbf", ["garbage.osm.pbf: not a readable OSM file"]),
+    ("empty.osm", ["empty.osm: the extract is empty"]),
+    ("broken.obj", ["broken.obj: cannot read the .obj file"]),
+    ("broken.ply", ["broken.ply: cannot read the .ply file"]),
+    ("notes.txt", ["notes.txt: unknown source type"]),
+    ("missing.osm", ["missing.osm: no such file"]),
+])
+def test_scene_build_bad_sources_are_one_line_and_keep_the_existing_scene(source, parts, bad_sources, tmp_path,
+                                                                          capsys):
+    out = tmp_path / "scene"
+    assert main(["scene", "build", str(URBAN), "--out", str(out)]) == 0
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    last = _fails_with_one_line(["scene", "build", str(bad_sources / source), "--out", str(out), "--force"],
+                                capsys, *parts)
+    assert last.startswith(f"error: {bad_sources / source}: ")
+    # the scene already built is untouched, and nothing is left aside
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene", "src"]
+
+
+@pytest.mark.parametrize("args,parts", [
+    (["--bbox", "10,48,11"], ["argument --bbox", "expected 4 numbers, got 3"]),
+    (["--bbox", "11,48,10,49"], ["argument --bbox", "MIN_LON < MAX_LON"]),
+    (["--origin", "100,10"], ["argument --origin", "latitude 100.0", "out of range"]),
+    (["--origin", "north,10"], ["argument --origin", "not a comma-separated list of numbers"]),
+])
+def test_scene_build_bad_arguments_are_one_line(args, parts, tmp_path, capsys):
+    _fails_with_one_line(["scene", "build", str(URBAN), "--out", str(tmp_path / "o"), *args], capsys, *parts,
+                         code=2)
+    assert not (tmp_path / "o").exists()
+
+
+def test_scene_build_a_bbox_without_buildings_is_one_line(tmp_path, capsys):
+    _fails_with_one_line(["scene", "build", str(URBAN), "--out", str(tmp_path / "o"), "--bbox",
+                          "10,10,10.001,10.001"], capsys, f"{URBAN}: no building inside the bounding box")
+    assert not (tmp_path / "o").exists()
+
+
+def test_scene_build_unsafe_and_existing_outputs_are_refused(tmp_path, capsys, monkeypatch):
+    work = tmp_path / "work"
+    (work / "sub").mkdir(parents=True)
+    keep = work / "sub" / "keep.txt"
+    keep.write_text("mine")
+    src = work / "sub" / "urban.osm"
+    src.write_bytes(URBAN.read_bytes())
+    monkeypatch.chdir(work)
+    _fails_with_one_line(["scene", "build", str(src), "--out", ".", "--force"], capsys,
+                         "error: .: unsafe output directory")
+    _fails_with_one_line(["scene", "build", str(src), "--out", str(tmp_path), "--force"], capsys,
+                         f"error: {tmp_path}: unsafe output directory")  # a parent of the working dir
+    _fails_with_one_line(["scene", "build", str(src), "--out", "sub", "--force"], capsys,
+                         "error: sub: holds the source file")
+    _fails_with_one_line(["scene", "build", str(src), "--out", "sub"], capsys,
+                         "error: sub: holds the source file")
+    _fails_with_one_line(["scene", "build", str(src), "--out", "sub/keep.txt/x"], capsys,
+                         "error: sub/keep.txt/x: --out:", "keep.txt is a file, not a directory")
+    _fails_with_one_line(["scene", "build", str(src), "--out", "sub/keep.txt", "--force"], capsys,
+                         "error: sub/keep.txt: exists and is not a directory")
+    other = work / "other"
+    other.mkdir()
+    (other / "x").write_text("x")
+    _fails_with_one_line(["scene", "build", str(src), "--out", "other"], capsys,
+                         "error: other: directory exists and is not empty; pass --force")
+    assert keep.read_text() == "mine" and src.read_bytes() == URBAN.read_bytes() and (other / "x").exists()
+    assert sorted(p.name for p in work.iterdir()) == ["other", "sub"]
+    assert sorted(p.name for p in (work / "sub").iterdir()) == ["keep.txt", "urban.osm"]
+
+
+def test_ckm_failures_are_one_line(materialised, tmp_path, capsys):
+    scene, home, data = materialised
+    the_map = data / "ckm" / "tiny" / "sunny.zarr"
+    _fails_with_one_line(["ckm", str(scene), "--data", str(tmp_path / "empty")], capsys,
+                         f"no channel knowledge map at {tmp_path / 'empty' / 'ckm' / 'tiny' / 'sunny.zarr'}",
+                         "materialise ckm_layers first")
+    _fails_with_one_line(["ckm", "no_such_scene", "--data", str(data)], capsys,
+                         "scene 'no_such_scene': not registered in")
+    _fails_with_one_line(["ckm", str(scene), "--data", str(data), "--weather", "hail"], capsys,
+                         "weather 'hail'", "ckm.weathers")
+    _fails_with_one_line(["ckm", str(scene), "--data", str(data), "--layer", "sinr_db", "no_layer"], capsys,
+                         f"error: {the_map}: --layer: no layer no_layer; layers:")
+    _fails_with_one_line(["ckm", str(scene), "--data", str(data), "--export", str(tmp_path / "x.nc")], capsys,
+                         f"error: {tmp_path / 'x.nc'}: --export: give a .zarr path")
+    not_a_store = tmp_path / "mine.zarr"
+    not_a_store.mkdir()
+    (not_a_store / "notes").write_text("mine")
+    _fails_with_one_line(["ckm", str(scene), "--data", str(data), "--export", str(not_a_store)], capsys,
+                         f"error: {not_a_store}: --export: exists and is not a Zarr store")
+    assert (not_a_store / "notes").read_text() == "mine"
+    before = sorted(p.relative_to(the_map) for p in the_map.rglob("*"))
+    _fails_with_one_line(["ckm", str(scene), "--data", str(data), "--export", str(the_map)], capsys,
+                         f"error: {the_map}: --export: is (or holds, or lies inside) the map")
+    assert sorted(p.relative_to(the_map) for p in the_map.rglob("*")) == before
+    (tmp_path / "afile").write_text("x")
+    _fails_with_one_line(["ckm", str(scene), "--data", str(data), "--export", str(tmp_path / "afile" / "m.zarr")],
+                         capsys, "--export:", "afile is a file, not a directory")
+    # unwritable: /proc takes no new directories, even for root
+    _fails_with_one_line(["ckm", str(scene), "--data", str(data), "--export", "/proc/simart_test.zarr"], capsys,
+                         "error: /proc/simart_test.zarr: --export: cannot write there:")
+    # and the export works, twice (a previous export is a store: replaced)
+    out = tmp_path / "copy.zarr"
+    for _ in range(2):
+        assert main(["ckm", str(scene), "--data", str(data), "--layer", "sinr_db", "--export", str(out)]) == 0
+
+
+def test_validate_failures_are_one_line(tmp_path, capsys):
+    _fails_with_one_line(["validate", str(tmp_path / "nowhere")], capsys,
+                         f"error: {tmp_path / 'nowhere'}: no such directory")
+    bad_yaml, not_utf8, yaml_dir = tmp_path / "bad_yaml", tmp_path / "not_utf8", tmp_path / "yaml_dir"
+    for d in (bad_yaml, not_utf8, yaml_dir):
+        d.mkdir()
+    (bad_yaml / "scene.yaml").write_text("name: [unclosed\n")
+    (not_utf8 / "scene.yaml").write_bytes(b"\xff\xfename: x\n")
+    (yaml_dir / "scene.yaml").mkdir()
+    _fails_with_one_line(["validate", str(bad_yaml)], capsys, f"- {bad_yaml / 'scene.yaml'}: not valid YAML:",
+                         "line 2, column 1")
+    _fails_with_one_line(["validate", str(not_utf8)], capsys, f"- {not_utf8 / 'scene.yaml'}: not UTF-8 text")
+    _fails_with_one_line(["validate", str(yaml_dir)], capsys, f"- {yaml_dir / 'scene.yaml'}:")
+
+
+def test_verbose_prints_the_trace_before_the_one_line(bad_sources, tmp_path, capsys):
+    for argv in (["scene", "build", str(bad_sources / "malformed.osm"), "--out", str(tmp_path / "o"), "--verbose"],
+                 ["--verbose", "ckm", str(tmp_path / "no_scene"), "--data", str(tmp_path)]):
+        capsys.readouterr()
+        assert main(argv) == 1
+        err = capsys.readouterr().err
+        assert "Traceback" in err and err.strip().splitlines()[-1].startswith("error: ")
+
+
+@pytest.mark.parametrize("argv", [["validate", "{tmp}/nowhere"], ["scene", "build", "{src}/malformed.osm", "--out",
+                                  "{tmp}/o"], ["ckm", "{tmp}", "--data", "{tmp}/data"]])
+def test_a_failing_command_in_a_process_prints_no_trace(argv, bad_sources, tmp_path):
+    (tmp_path / "scene.yaml").write_text(Path(REPO / "tests" / "scenes" / "tiny" / "scene.yaml").read_text())
+    argv = [a.format(tmp=tmp_path, src=bad_sources) for a in argv]
+    r = subprocess.run([sys.executable, "-m", "simart_pipeline.cli", *argv], capture_output=True, text=True,
+                       cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(REPO)}, timeout=120)
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "Traceback" not in r.stdout + r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith("error: ")
