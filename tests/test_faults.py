@@ -316,9 +316,17 @@ def test_a_tile_killed_mid_write_is_not_current(tmp_path):
     _kill(p)
     assert (path / "l0" / "c" / "0" / "0" / "0").exists()  # the tile's first chunk is written
     assert _check_mosaic(path, 1, []) == []
+    # what zarr leaves of a chunk write killed half way (it writes aside, then renames)
+    partial = path / "l3" / "c" / "0" / "0" / "0.0123456789abcdef0123456789abcdef.partial"
+    partial.parent.mkdir(parents=True, exist_ok=True)
+    partial.write_bytes(b"half")
+    other = path / "l3" / "c" / "0" / "0" / "1.0123456789abcdef0123456789abcdef.partial"  # tile r0c1's
+    other.write_bytes(b"half")
     p = _run_tiles(tmp_path, path, tmp_path / "log1", 1)
     assert p.wait(120) == 0, p.stderr.read().decode()
     assert _check_mosaic(path, 1, tiles) == tiles
+    assert not partial.exists() and not other.exists()  # each removed by its own tile's rewrite
+    assert not list(path.rglob("*.partial"))
     # version 2 of the inputs: rewriting tile r0c1 is killed half way
     log = tmp_path / "log2"
     p = _run_tiles(tmp_path, path, log, 2, stall=tiles[1])

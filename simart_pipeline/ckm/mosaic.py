@@ -93,6 +93,15 @@ def tile_is_current(path: Path, tile: str, map_version: str, tile_version: int) 
         return False
 
 
+def _remove_partial_chunks(path: Path, r: int, c: int) -> None:
+    """Delete the half-written chunk files (``<chunk>.<uuid>.partial``, zarr's LocalStore) that a run
+    killed while writing tile (r, c) left in its chunk directories: readers ignore them, but they
+    would pile up. Only this tile's writer writes these chunks, so none is in use."""
+    for f in path.glob("*/c/**/*.partial"):
+        if f.name.split(".")[0] == str(c) and f.parent.name == str(r):
+            f.unlink(missing_ok=True)
+
+
 def write_tile(path: Path, ckm: Ckm, tile: str, ds: xr.Dataset, tile_version: int = -1) -> None:
     """Write tile ``tile``'s layers (dims ``... height, y, x``) into their chunk-aligned region."""
     sl = tile_slices(ckm, tile)
@@ -108,6 +117,7 @@ def write_tile(path: Path, ckm: Ckm, tile: str, ds: xr.Dataset, tile_version: in
     # and a previously current tile being rewritten is from then on treated as never written.
     done[r, c] = False
     version[r, c] = -1
+    _remove_partial_chunks(Path(path), r, c)
     stores.write_region(ds, path, {"y": sl[0], "x": sl[1]}, chunks={"y": cy, "x": cx},
                         sizes={"y": rows, "x": cols})
     version[r, c] = tile_version
@@ -117,6 +127,8 @@ def write_tile(path: Path, ckm: Ckm, tile: str, ds: xr.Dataset, tile_version: in
 def open_map(path: Path) -> xr.Dataset:
     """The mosaic as an xarray dataset (absent tiles read as fills; see ``tile_complete``)."""
     path = Path(path)
+    if not path.exists():
+        stores.recover(path)  # a template swap killed half way may have left the map aside
     if not path.exists():
         raise FileNotFoundError(f"no channel knowledge map at {path}: materialise ckm_layers first")
     return xr.open_zarr(path, consolidated=False)
