@@ -108,11 +108,12 @@ def _plan(cfg, weathers, tiles):
     ws = list(weathers or cfg.weathers)
     unknown = [w for w in ws if w not in cfg.weathers]
     if unknown:
-        raise SystemExit(f"--weather {' '.join(unknown)}: not among the scene's weathers {list(cfg.weathers)}")
+        raise CliError(f"--weather {' '.join(unknown)}: not among the weathers of scene {cfg.name!r}: "
+                       f"{list(cfg.weathers)}")
     ts = list(tiles or scene_tiles(cfg.ckm))
     unknown = [t for t in ts if t not in scene_tiles(cfg.ckm)]
     if unknown:
-        raise SystemExit(f"--tile {' '.join(unknown)}: not among the scene's tiles {scene_tiles(cfg.ckm)}")
+        raise CliError(f"--tile {' '.join(unknown)}: not among the tiles of scene {cfg.name!r}: {scene_tiles(cfg.ckm)}")
     return ws, ts
 
 

@@ -6,8 +6,8 @@ Layout: ``<data_root>/<asset>/<scene>.zarr`` for scene partitions and
 A store is written aside (``.<name>.tmp-<host>-<pid>-<id>``) and swapped into place in one step, so
 a failed or killed run never leaves a half-written store, and a rerun replaces the last good version
 completely or not at all (see :func:`_replace_atomically`; what a killed writer leaves aside is
-cleaned up by the next write, :func:`recover`). Before a store is written, it is checked: no inf anywhere, and NaN only in variables whose attrs
-say what NaN means (``nan_means``).
+cleaned up by the next write, :func:`recover`). Before a store is written, it is checked: no inf
+anywhere, and NaN only in variables whose attrs say what NaN means (``nan_means``).
 
 A store filled region by region (the CKM mosaic: one region per tile, from concurrent runs) is
 created empty by :func:`create_chunked_store`, written aside and renamed like every other store, and

@@ -210,6 +210,17 @@ def test_ckm_failures_are_one_line(materialised, tmp_path, capsys):
         assert main(["ckm", str(scene), "--data", str(data), "--layer", "sinr_db", "--export", str(out)]) == 0
 
 
+def test_run_argument_failures_are_one_line(tiny_scene, tmp_path, capsys):
+    data = tmp_path / "data"
+    _fails_with_one_line(["run", str(tiny_scene), "--data", str(data), "--weather", "hail"], capsys,
+                         "error: --weather hail: not among the weathers of scene 'tiny': ['sunny'")
+    _fails_with_one_line(["run", str(tiny_scene), "--data", str(data), "--tile", "r9c9"], capsys,
+                         "error: --tile r9c9: not among the tiles of scene 'tiny': ['r0c0'")
+    _fails_with_one_line(["run", str(tmp_path / "nowhere"), "--data", str(data)], capsys,
+                         f"- {tmp_path / 'nowhere' / 'scene.yaml'}: no scene.yaml")
+    assert not list(data.rglob("*.zarr"))  # nothing was run
+
+
 def test_validate_failures_are_one_line(tmp_path, capsys):
     _fails_with_one_line(["validate", str(tmp_path / "nowhere")], capsys,
                          f"error: {tmp_path / 'nowhere'}: no such directory")
