@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from pathlib import Path
 
@@ -39,7 +40,8 @@ def _wait_for(p: subprocess.Popen, check, timeout: float = 60.0) -> None:
     t0 = time.monotonic()
     while not check():
         if p.poll() is not None:
-            raise AssertionError(f"worker exited {p.returncode} early: {p.stderr.read().decode()[-2000:]}")
+            err = p.stderr.read().decode()[-2000:] if p.stderr else ""
+            raise AssertionError(f"worker exited {p.returncode} early: {err}")
         if time.monotonic() - t0 > timeout:
             p.kill()
             raise AssertionError("worker too slow")
@@ -282,11 +284,16 @@ def test_a_tile_write_killed_at_random_points(tmp_path):
     path = tmp_path / "map.zarr"
     _, tiles = _tiles()
     current: list[str] = []
+    killed_inside = 0
     for trial in range(4):
         log = tmp_path / f"log{trial}"
         p = _run_tiles(tmp_path, path, log, 1)
-        _wait_for(p, lambda: "ready" in _lines(log))
-        time.sleep(rng.uniform(0.0, 0.3))  # a tile takes some 50-100 ms
+        # a random tile among the first half of those left (so work remains whatever the speed),
+        # killed at a random instant of its writing (a tile takes some 50-100 ms here)
+        left = [t for t in tiles if t not in current]
+        target = rng.choice(left[:max(1, len(left) // 2)])
+        _wait_for(p, lambda: f"begin {target}" in _lines(log))
+        time.sleep(rng.uniform(0.0, 0.08))
         _kill(p)
         lines = _lines(log)
         ended = [ln.split()[1] for ln in lines if ln.startswith("end ")]
@@ -294,7 +301,9 @@ def test_a_tile_write_killed_at_random_points(tmp_path):
         current = _check_mosaic(path, 1, current + ended)
         if begun and begun[-1] not in ended:  # killed inside this tile: not current, whatever it holds
             assert begun[-1] not in current
+            killed_inside += 1
     assert "finished" not in _lines(log) and len(current) < len(tiles), "no kill landed before the end"
+    assert killed_inside, "no kill landed inside a tile"
     before = {t: _chunk_mtimes(path, t) for t in current}
     log = tmp_path / "log_final"
     p = _run_tiles(tmp_path, path, log, 1)
@@ -371,13 +380,21 @@ def test_a_killed_simart_run_is_completed_by_the_next(tmp_path):
     cmd = [sys.executable, "-m", "simart_pipeline.cli", "run", str(scene), "--data", str(data),
            "--weather", "sunny", "--tile", "r0c0"]
     env = {**ENV, "DAGSTER_HOME": str(home)}
-    p = subprocess.Popen(cmd, env=env, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    # the whole run takes some 15 s here (5 s of it imports): kill it in the middle of its work
-    time.sleep(random.Random(SEED).uniform(6.0, 13.0))
+    p = subprocess.Popen(cmd, env={**env, "PYTHONUNBUFFERED": "1"}, cwd=tmp_path, stdout=subprocess.PIPE,
+                         stderr=subprocess.STDOUT, text=True)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(p.stdout), daemon=True)
+    reader.start()
+    # kill it at a random instant after a random one of the first 8 of its 9 steps starts (the run
+    # takes some 15 s here, a step 1-4 s), so that work is left whatever the machine's speed
+    rng = random.Random(SEED)
+    step = f"[ {rng.randint(1, 8)}/9]"
+    _wait_for(p, lambda: any(ln.startswith(step) for ln in list(lines)), timeout=120)
+    time.sleep(rng.uniform(0.0, 1.0))
     finished_early = p.poll() is not None
     _kill(p)
-    before = p.stdout.read().decode()
-    assert not finished_early, f"the run ended before the kill:\n{before}"
+    reader.join(10)
+    assert not finished_early, "the run ended before the kill:\n" + "".join(lines)
     if data.exists():
         _visible_stores_open(data)
     r = subprocess.run(cmd, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=300)
