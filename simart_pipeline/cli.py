@@ -522,6 +522,9 @@ def main(argv: list[str] | None = None) -> int:
     args.verbose = getattr(args, "verbose", False)
     try:
         return args.func(args)
+    except KeyboardInterrupt:  # stores are swapped in whole, so an interrupted run loses nothing
+        print("error: interrupted; what was written completely is kept, rerun to finish", file=sys.stderr)
+        return 130
     except Exception as exc:
         if args.verbose:
             detail = exc.detail if isinstance(exc, StepFailed) and exc.detail else None

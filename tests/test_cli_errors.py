@@ -221,6 +221,15 @@ def test_run_argument_failures_are_one_line(tiny_scene, tmp_path, capsys):
     assert not list(data.rglob("*.zarr"))  # nothing was run
 
 
+def test_a_config_with_several_problems_ends_with_the_last_one(tiny_scene, tmp_path, capsys):
+    yaml_file = tiny_scene / "scene.yaml"
+    text = yaml_file.read_text().replace("max_depth: 2", "max_depth: 2, max_dept: 1, max_dpth: 1")
+    yaml_file.write_text(text)
+    last = _fails_with_one_line(["ckm", str(tiny_scene), "--data", str(tmp_path)], capsys,
+                                "error: 2 problems, the last:", f"{yaml_file}: ray_tracing.max_dpth:")
+    assert "Extra inputs are not permitted" in last
+
+
 def test_validate_failures_are_one_line(tmp_path, capsys):
     _fails_with_one_line(["validate", str(tmp_path / "nowhere")], capsys,
                          f"error: {tmp_path / 'nowhere'}: no such directory")
