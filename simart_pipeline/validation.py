@@ -77,10 +77,10 @@ def scene_problems(scene_dir: str | Path) -> tuple[SceneConfig | None, list[str]
 
 
 def _replay_problems(platform, i: int, scene_dir: Path, geom, where: Path) -> list[str]:
-    """The recording read as the trajectory stage reads it (file, topic, message type, stamps), and
-    its recorded poses checked against the buildings."""
+    """The recording read as the trajectory stage reads it (file, topic, message type, stamp rules,
+    dynamic limits), and its recorded poses checked against the buildings."""
     try:
-        rec = replay.read_recording(platform.trajectory, scene_dir)
+        rec = replay.checked_recording(platform, scene_dir)
     except (OSError, ValueError) as exc:  # ReplayError and BagError name the file and the topic
         return [f"{where}: platforms.{i}.trajectory: {exc}"]
     pos = rec["position_m"]

@@ -77,6 +77,12 @@ class ReplayTrajectory(_Model):
     recording_frame: RecordingFrame = Field(
         default_factory=lambda: RecordingFrame(),
         description="pose of the frame the recorded poses are given in, in the scene's world frame")
+    max_gap_s: float = Field(
+        1.0, gt=0, le=3600, allow_inf_nan=False,
+        description="a longer interval between recorded poses is refused (raise it to interpolate across)")
+    dynamic_limits: Literal["refuse", "warn", "accept"] = Field(
+        "refuse", description="replayed speed or acceleration above the platform's limits: refuse the "
+        "replay (default), warn and replay, or accept silently (docs/mobility.md, 'Replay')")
     _inside = field_validator("path")(classmethod(lambda cls, v: _inside_scene_dir(v, "the recording")))
     _origin = field_validator("time_origin")(classmethod(lambda cls, v: _bag_time_origin(v)))
 

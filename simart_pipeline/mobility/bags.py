@@ -313,20 +313,9 @@ def read_bag_trajectory(path: str | Path, topic: str, *, stamp: str = "header",
 
 
 def _checked(rec: dict[str, np.ndarray], path: Path, topic: str) -> dict[str, np.ndarray]:
-    """Sorted, repeated stamps merged, orientation-less messages handled, twist rotated to world."""
+    """Orientation-less messages handled, twist rotated to world, values checked; the stamp rules
+    (order, repeats, jitter, gaps, two sources) are ``replay.clean``'s, for bags and CSVs alike."""
     where = f"{path}: topic {topic}"
-    order = np.argsort(rec["time_ns"], kind="stable")
-    rec = {k: v[order] for k, v in rec.items()}
-    t = rec["time_ns"]
-    same = np.concatenate([[False], np.diff(t) == 0])
-    if same.any():
-        num = np.concatenate([v.reshape(len(t), -1) for k, v in rec.items() if k != "time_ns"], axis=1)
-        differ = same & np.any(num != np.roll(num, 1, axis=0), axis=1)
-        if differ.any():
-            i = int(np.argmax(differ))
-            raise BagError(f"{where}: {int(differ.sum())} messages repeat the stamp of the one before with "
-                           f"another pose (first at {int(t[i])} ns after the origin); try stamp: record")
-        rec = {k: v[~same] for k, v in rec.items()}
     n = len(rec["time_ns"])
     if n < 2:
         raise BagError(f"{where}: at least two poses are needed, found {n}")

@@ -102,8 +102,7 @@ def evaluate_platform(platform: Platform, t_ns: np.ndarray, scene_dir: Path | No
             raise ValueError(f"platform {platform.name}: a replayed trajectory needs the scene directory")
         from simart_pipeline.mobility import replay
 
-        rec = replay.read_recording(platform.trajectory, scene_dir)  # CSV or bag, by file name
-        return replay.resample(rec, t_ns, platform.trajectory.time_offset_s)
+        return replay.replay_platform(platform, t_ns, scene_dir)  # CSV or bag, by file name
     return evaluate_waypoints(platform, clock.ns_to_seconds(t_ns), geom, plan)
 
 
