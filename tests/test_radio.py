@@ -395,3 +395,35 @@ def test_a_duplicate_path_counts_once_and_a_near_equal_distinct_one_is_kept():
     assert "objects" not in out and "primitives" not in out
     # Gain of the link: 3 distinct unit paths, not 4 (the duplicate added 10 log10(4/3) dB here).
     assert np.sum(np.abs(out["a"][0, 0, 0, 0]) ** 2) == 3
+
+
+def test_no_path_is_lost_to_the_candidate_cap_with_diffraction(tiny_built, monkeypatch):
+    """With diffraction Sionna keeps every candidate and silently drops those beyond
+    max_num_paths_per_src (per source, over all receivers of a call). With a cap of 50 and 12
+    receivers a call, the tracer must notice, split, and give the one-receiver-a-call gains."""
+    from simart_pipeline.radio import tracer
+
+    cfg, _, _, out = tiny_built
+    rx = np.c_[np.random.default_rng(0).uniform(-40, 40, (12, 2)), np.full(12, 1.5)]
+    tx = np.array([b.position_m for b in cfg.base_stations])
+
+    def trace(cap, per_call):
+        rt = cfg.ray_tracing.model_copy(update={"diffraction": True, "samples_per_src": 10_000,
+                                                "max_num_paths_per_src": cap,
+                                                "max_receivers_per_call": per_call})
+        radio = RadioScene.from_config(meshes.radio_scene_file(out), cfg.model_copy(update={"ray_tracing": rt}))
+        p = radio.trace(tx, np.zeros((len(tx), 3)), rx)
+        with np.errstate(divide="ignore"):
+            return 10 * np.log10(np.sum(np.abs(p.a) ** 2, axis=(1, 3, 4))), radio.cap_retries, p.valid.sum()
+
+    one, retries_one, valid_one = trace(1_000_000, 1)
+    assert retries_one == 0 and np.isfinite(one).sum() >= 10
+    many, retries, valid = trace(50, 12)
+    assert retries > 0  # the cap was reached and detected
+    assert valid == valid_one
+    np.testing.assert_array_equal(np.isfinite(many), np.isfinite(one))
+    np.testing.assert_allclose(many[np.isfinite(one)], one[np.isfinite(one)], atol=0.01, rtol=0)
+    # Without the check the same call loses paths: the case above is one the check must catch.
+    monkeypatch.setattr(tracer, "_count_candidates", lambda solver: [])
+    _, _, valid_unchecked = trace(50, 12)
+    assert valid_unchecked < valid_one
