@@ -240,3 +240,31 @@ def test_fast_mode_writes_the_same_layers_and_agrees_with_the_reference(tiny_bui
     assert (ref["los"].values == fast["los"].values)[both].mean() > 0.9
     indoor = ref["cell_inside_building"].values
     assert not fast["has_path"].values[:, indoor].any()
+
+
+def test_cells_with_few_ray_hits_hold_no_gain_toa_or_beams():
+    """Fast-mode moments of three cells reached by 1, 4 and 5 ray hits: with min_count_for_power 5
+    only the third keeps gain, ToA, LoS and beams; the others keep has_path and their count."""
+    from simart_pipeline.ckm import moments as mom
+
+    m = mom.CellMoments.zeros((3,), num_beams=2)
+    m.count[:] = [1, 4, 5]
+    m.power[:] = [1e-3, 1e-9, 1e-9]  # the one-hit cell: a single tube far above its neighbours
+    m.los_power[:] = m.power
+    m.min_delay_s[:] = 1e-6
+    m.tau0_s[:] = 1e-6
+    m.p_cos[:, :] = m.power[:, None]
+    m.beam_power[:] = m.power[:, None] * [1.0, 2.0]
+    L = mom.layers_from_moments(m, min_count_for_spread=10, min_count_for_power=5)
+    assert L["has_path"].tolist() == [True, True, True]
+    assert L["enough_hits"].tolist() == [False, False, True]
+    assert L["count"].tolist() == [1, 4, 5]
+    for name in ("path_gain_db", "path_loss_db", "toa_s", "mean_delay_s", "los_power_fraction",
+                 "best_beam_gain_db"):
+        assert np.isnan(L[name][:2]).all() and np.isfinite(L[name][2]), name
+    assert np.isnan(L["beam_gain_db"][:2]).all() and np.isfinite(L["beam_gain_db"][2]).all()
+    assert L["best_beam"].tolist() == [-1, -1, 1] and L["los"].tolist() == [False, False, True]
+    assert L["path_gain_db"][2] == pytest.approx(-90.0)
+    assert np.isnan(L["asa_deg"]).all()  # 5 hits: still below min_count_for_spread
+    # The default keeps every cell that something reached (reference mode: each count is a path).
+    assert np.isfinite(mom.layers_from_moments(m)["path_gain_db"]).all()

@@ -415,3 +415,36 @@ def test_unsupported_interactions_and_bad_grids_are_refused(free_space):
         op.one_pass_moments(*args, codebook=np.ones((2, 1)) * 2.0)
     with pytest.raises(ValueError, match="indoor.*broadcast"):
         op.one_pass_moments(*args, indoor=np.zeros((3, 3), bool))
+
+
+def _block(x0, x1, y0, y1, z0, z1) -> trimesh.Trimesh:
+    b = trimesh.creation.box(extents=[x1 - x0, y1 - y0, z1 - z0])
+    b.apply_translation([(x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2])
+    return b
+
+
+def test_outdoor_mask_with_shared_walls_stacked_parts_and_a_courtyard(tmp_path):
+    """Two buildings sharing a wall (each its own closed mesh, coincident faces), a building part
+    on another one (its floor on the other's roof), and a courtyard building (a ring): every
+    sample inside a volume reads indoor, every other one outdoor, at street level and at 12 m."""
+    import shapely
+
+    solids = [(0, 10, 0, 10, 0, 20), (10, 20, 0, 10, 0, 10),      # shared wall at x = 10
+              (30, 50, 0, 20, 0, 10), (35, 45, 5, 15, 10, 25)]     # a part standing on a roof
+    ring = shapely.Polygon([(60, 0), (90, 0), (90, 30), (60, 30)], [[(70, 10), (80, 10), (80, 20), (70, 20)]])
+    court = trimesh.creation.extrude_polygon(ring, 15.0)
+    parts = {"ground": (_ground(), "medium_dry_ground"), "court": (court, "concrete")}
+    for k, s in enumerate(solids):
+        parts[f"b{k}"] = (_block(*s), "concrete")
+    radio = RadioScene.from_config(_write_scene(tmp_path / "s", parts, 0.2), _cfg())
+    x, y = _axes(-5.0, 100, -5.0, 40, 1.0)  # 1 m cells, centres on .5: never on a wall
+    heights = np.array([1.5, 12.0])
+    frac = op.outdoor_fraction(radio, x, y, heights, samples_per_axis=1)  # one sample: the centre
+    Z, Y, X = np.meshgrid(heights, y, x, indexing="ij")
+    inside = np.zeros(X.shape, bool)
+    for x0, x1, y0, y1, z0, z1 in solids:
+        inside |= (X > x0) & (X < x1) & (Y > y0) & (Y < y1) & (Z > z0) & (Z < z1)
+    inside |= shapely.contains_xy(ring, X, Y) & (Z < 15.0)
+    assert inside[0].sum() > 1000 and (~inside[0] & (X[0] > 70) & (X[0] < 80) & (Y[0] > 10) & (Y[0] < 20)).sum() == 100
+    np.testing.assert_array_equal(frac == 0.0, inside)
+    np.testing.assert_array_equal(frac == 1.0, ~inside)

@@ -367,3 +367,63 @@ def test_per_antenna_gains_are_rebuilt_from_one_gain_and_the_array_geometry(tiny
         np.testing.assert_allclose(a, rebuilt, rtol=2e-3, atol=2e-3 * np.abs(a[0, 0]))
         checked += 1
     assert checked > 10
+
+
+def test_a_duplicate_path_counts_once_and_a_near_equal_distinct_one_is_kept():
+    """Paths 0 and 1: same interactions, objects and primitives, vertices 3 mm apart (Sionna's
+    duplicate). Path 2: same as 0 but another primitive, vertices 3 mm away (a distinct path).
+    Path 3: same ids as 0, vertices 5 cm away (distinct). Link (0, 1) holds path 0 only once."""
+    from simart_pipeline.radio.tracer import drop_duplicate_paths
+
+    num_rx, num_tx, depth, n = 1, 2, 2, 4
+    inter = np.zeros((num_rx, num_tx, depth, n), np.uint8)
+    inter[:, :, 0, :] = 1  # one specular reflection
+    obj = np.full((num_rx, num_tx, depth, n), 0xFFFFFFFF, np.uint32)
+    obj[:, :, 0, :] = 7
+    prim = obj.copy()
+    prim[:, :, 0, :] = [11, 11, 12, 11]
+    vert = np.zeros((num_rx, num_tx, depth, n, 3), np.float32)
+    vert[:, :, 0, :, :] = [[5.0, 1.0, 2.0], [5.003, 1.0, 2.0], [5.003, 1.0, 2.0], [5.05, 1.0, 2.0]]
+    d = {"valid": np.ones((num_rx, num_tx, n), bool), "interaction": inter, "objects": obj,
+         "primitives": prim, "vertices_m": vert,
+         "a": np.ones((num_rx, 1, num_tx, 1, n), np.complex64)}
+    d["valid"][0, 1, 1:] = False  # on the second link, only path 0: nothing to drop
+    out = drop_duplicate_paths(d)
+    assert out["valid"][0, 0].tolist() == [True, False, True, True]
+    assert out["valid"][0, 1].tolist() == [True, False, False, False]
+    assert out["a"][0, 0, 0, 0].tolist() == [1, 0, 1, 1]
+    assert "objects" not in out and "primitives" not in out
+    # Gain of the link: 3 distinct unit paths, not 4 (the duplicate added 10 log10(4/3) dB here).
+    assert np.sum(np.abs(out["a"][0, 0, 0, 0]) ** 2) == 3
+
+
+def test_no_path_is_lost_to_the_candidate_cap_with_diffraction(tiny_built, monkeypatch):
+    """With diffraction Sionna keeps every candidate and silently drops those beyond
+    max_num_paths_per_src (per source, over all receivers of a call). With a cap of 50 and 12
+    receivers a call, the tracer must notice, split, and give the one-receiver-a-call gains."""
+    from simart_pipeline.radio import tracer
+
+    cfg, _, _, out = tiny_built
+    rx = np.c_[np.random.default_rng(0).uniform(-40, 40, (12, 2)), np.full(12, 1.5)]
+    tx = np.array([b.position_m for b in cfg.base_stations])
+
+    def trace(cap, per_call):
+        rt = cfg.ray_tracing.model_copy(update={"diffraction": True, "samples_per_src": 10_000,
+                                                "max_num_paths_per_src": cap,
+                                                "max_receivers_per_call": per_call})
+        radio = RadioScene.from_config(meshes.radio_scene_file(out), cfg.model_copy(update={"ray_tracing": rt}))
+        p = radio.trace(tx, np.zeros((len(tx), 3)), rx)
+        with np.errstate(divide="ignore"):
+            return 10 * np.log10(np.sum(np.abs(p.a) ** 2, axis=(1, 3, 4))), radio.cap_retries, p.valid.sum()
+
+    one, retries_one, valid_one = trace(1_000_000, 1)
+    assert retries_one == 0 and np.isfinite(one).sum() >= 10
+    many, retries, valid = trace(50, 12)
+    assert retries > 0  # the cap was reached and detected
+    assert valid == valid_one
+    np.testing.assert_array_equal(np.isfinite(many), np.isfinite(one))
+    np.testing.assert_allclose(many[np.isfinite(one)], one[np.isfinite(one)], atol=0.01, rtol=0)
+    # Without the check the same call loses paths: the case above is one the check must catch.
+    monkeypatch.setattr(tracer, "_count_candidates", lambda solver: [])
+    _, _, valid_unchecked = trace(50, 12)
+    assert valid_unchecked < valid_one

@@ -171,8 +171,11 @@ def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_
         v = getattr(m, f)
         if v is not None and f != "tau0_s":
             v[:, ~traced] = np.inf if f == "min_delay_s" else 0
-    layers = mom.layers_from_moments(m, cfg.ckm.min_hits_for_spread if cfg.ckm.mode == "fast" else 1)
-    has = layers["has_path"]
+    fast = cfg.ckm.mode == "fast"
+    layers = mom.layers_from_moments(m, cfg.ckm.min_hits_for_spread if fast else 1,
+                                     cfg.ckm.min_hits_for_power if fast else 1)
+    # Link layers and the coherent gain follow the power layers: none where too few rays arrived.
+    has = layers["enough_hits"]
     layers["path_gain_coherent_db"] = np.where(has, power_db(coherent), np.nan)
     power_dbm = np.array([b.power_dbm for b in cfg.base_stations])[:, None, None, None]
     layers["rx_power_dbm"] = power_dbm + layers["path_gain_db"]
@@ -200,7 +203,8 @@ def layers_dataset(layers: dict, cfg: SceneConfig, grid: TileGrid, B: int) -> xr
             continue
         if v.dtype.kind == "f":
             attrs.setdefault("nan_means", MASKED + ("; or too few rays/paths for a stable value"
-                                                    if name in mom.SPREAD_NAMES.values() else ""))
+                                                    if name in mom.SPREAD_NAMES.values() else
+                                                    "; or fewer ray hits than ckm.min_hits_for_power (fast mode)"))
             v = v.astype(np.float64 if name.endswith("_s") else np.float32)
         data[name] = (d4, v, attrs)
     if "beam_gain_db" in layers:

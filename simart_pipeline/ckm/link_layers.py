@@ -29,7 +29,8 @@ from simart_pipeline.link.budget import (allocation, inner_loop, power_db, power
                                          SERVING_RULE)
 
 MASKED = "cell masked: inside a building or outside the region (not traced)"
-NOT_SERVED = "no base station reaches the cell (not served), or the cell is masked"
+NOT_SERVED = ("no base station reaches the cell (not served; fast mode: with ckm.min_hits_for_power ray "
+              "hits), or the cell is masked")
 RATE_NAN = MASKED + "; the rate is 0 where no base station reaches a traced cell (not served)"
 
 

@@ -99,24 +99,29 @@ def path_moments(power: np.ndarray, delay_s: np.ndarray, valid: np.ndarray, los:
         beam_power=None if beam_power is None else (np.where(valid[..., None], beam_power, 0.0)).sum(-2))
 
 
-def layers_from_moments(m: CellMoments, min_count_for_spread: int = 1) -> dict[str, np.ndarray]:
+def layers_from_moments(m: CellMoments, min_count_for_spread: int = 1,
+                        min_count_for_power: int = 1) -> dict[str, np.ndarray]:
     """Layer arrays (grid shape ``S``) from moments; NaN where a layer has no value.
 
-    ``has_path``: anything arrived. Spreads and mean angles are also NaN where ``count`` is below
-    ``min_count_for_spread`` (the fast solver's guard against spreads from too few rays).
+    ``has_path``: anything arrived. ``enough_hits``: something arrived and ``count`` reaches
+    ``min_count_for_power``; path gain, ToA, mean delay, LoS and beams are NaN (LoS False, best
+    beam -1) elsewhere: a cell reached by a ray or two holds a gain that can be tens of dB off (the
+    fast solver's guard; 1 in reference mode, where each count is an exact path). Spreads and mean
+    angles also need ``min_count_for_spread``.
     """
     has = m.power > 0
     g = np.where(has, m.power, 1.0)
-    out: dict[str, np.ndarray] = {"has_path": has, "count": m.count}
-    out["path_gain_db"] = power_db(m.power)
+    enough = has & (m.count >= min_count_for_power)
+    out: dict[str, np.ndarray] = {"has_path": has, "enough_hits": enough, "count": m.count}
+    out["path_gain_db"] = np.where(enough, power_db(m.power), np.nan)
     out["path_loss_db"] = -out["path_gain_db"]
-    out["los_power_fraction"] = np.where(has, m.los_power / g, np.nan)
-    out["los"] = has & (m.los_power / g > 0.5)
-    out["toa_s"] = np.where(has & np.isfinite(m.min_delay_s), m.min_delay_s, np.nan)
+    out["los_power_fraction"] = np.where(enough, m.los_power / g, np.nan)
+    out["los"] = enough & (m.los_power / g > 0.5)
+    out["toa_s"] = np.where(enough & np.isfinite(m.min_delay_s), m.min_delay_s, np.nan)
     mean_excess = m.p_excess_delay_s / g
     var = np.maximum(m.p_excess_delay2_s2 / g - mean_excess**2, 0.0)
-    stable = has & (m.count >= min_count_for_spread)
-    out["mean_delay_s"] = np.where(has, m.tau0_s + mean_excess, np.nan)
+    stable = enough & (m.count >= min_count_for_spread)
+    out["mean_delay_s"] = np.where(enough, m.tau0_s + mean_excess, np.nan)
     out["rms_delay_spread_s"] = np.where(stable, np.sqrt(var), np.nan)
     for k, name in enumerate(ANGLES):
         c, s = m.p_cos[..., k], m.p_sin[..., k]
@@ -125,17 +130,19 @@ def layers_from_moments(m: CellMoments, min_count_for_spread: int = 1) -> dict[s
         out[MEAN_ANGLE_NAMES[name]] = np.where(stable, np.degrees(np.arctan2(s, c)), np.nan)
     if m.beam_power is not None:
         bp = m.beam_power
-        out["beam_gain_db"] = np.where(has[..., None], power_db(bp), np.nan)
+        out["beam_gain_db"] = np.where(enough[..., None], power_db(bp), np.nan)
         best = np.argmax(bp, axis=-1)
-        out["best_beam"] = np.where(has, best, -1).astype(np.int32)
+        out["best_beam"] = np.where(enough, best, -1).astype(np.int32)
         best_gain = np.take_along_axis(bp, best[..., None], axis=-1)[..., 0]
-        out["best_beam_gain_db"] = np.where(has, power_db(best_gain), np.nan)
+        out["best_beam_gain_db"] = np.where(enough, power_db(best_gain), np.nan)
     return out
 
 
 # Units and definitions of every layer above: the store attrs and docs/ckm.md use these.
 LAYER_ATTRS: dict[str, dict[str, str]] = {
     "has_path": dict(long_name="something arrived in the cell (a path or a ray)"),
+    "enough_hits": dict(long_name="something arrived and the cell's count reaches ckm.min_hits_for_power "
+                        "(fast mode; reference mode: has_path): gain, ToA, LoS and beam layers hold values"),
     "count": dict(units="1", long_name="number of paths (reference mode) or ray hits (fast mode)"),
     "path_gain_db": dict(units="dB", long_name="path gain, incoherent sum over paths, element to element"),
     "path_loss_db": dict(units="dB", long_name="path loss (= -path gain)"),

@@ -33,6 +33,12 @@ class Ckm(_Model):
         "per receiver (docs/ckm.md)")
     num_rays: int = Field(10_000_000, ge=1_000, description="fast mode: rays per transmitter")
     min_hits_for_spread: int = Field(10, ge=1, description="fast mode: fewer ray hits mask the spreads")
+    # 5: a cell's power from n ray hits has a relative sampling error of about 1/sqrt(n) (the hit
+    # count's own fluctuation), about 2 dB at 5 hits, while one or two hits can be tens of dB off
+    # (a single reflected tube clipping the cell). Below min_hits_for_spread: a first moment needs
+    # fewer hits than the second moments of the spreads.
+    min_hits_for_power: int = Field(5, ge=1, description="fast mode: fewer ray hits mask path gain, "
+                                    "ToA, mean delay, LoS and beam layers (layer enough_hits)")
     weathers: tuple[WeatherName, ...] | None = Field(
         None, description="weathers whose radio materials get a map (default: the scene's); weathers "
         "with equal materials share one map")

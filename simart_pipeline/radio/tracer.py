@@ -8,6 +8,15 @@ interaction sequence, so that two runs compare entry by entry.
 
 Entries that hold no path (``valid`` false) are filled, never left as Sionna leaves them: ``a = 0``,
 ``tau_s = -1`` (an impossible delay), zero angles, Doppler and interaction points.
+
+Two guards keep every path once and only once:
+
+- Duplicates: PathSolver sometimes returns one path twice (same objects and primitives, vertices
+  millimetres apart), which adds 3 dB to a link's gain. :func:`drop_duplicate_paths` keeps the first.
+- Candidate cap: Sionna stores at most ``max_num_paths_per_src`` candidates per source over all
+  receivers of a call and drops the rest without a word (diffraction keeps every candidate). The
+  tracer counts the candidates of each call; a call that reaches the cap is split in two (or, for
+  one receiver, rerun with a doubled cap) until none does.
 """
 
 from __future__ import annotations
@@ -27,6 +36,11 @@ from simart_pipeline.vocabulary import InteractionKind
 RX_NEAR_TX_M = 0.01  # Sionna RT silently drops the LoS path of a receiver this close to a transmitter
 INVALID_DELAY_S = -1.0
 SOLVER_BYTES_PER_SAMPLE_BOUNCE_RX = 48  # measured: 100 rx x 1e5 samples: 0.46 / 1.2 / 2.3 GB at depth 1 / 3 / 6
+# Two paths of one link with equal interaction, object and primitive sequences are one path when
+# every vertex is this close: Sionna's duplicates differ by millimetres; two distinct paths with
+# the same primitives (one specular point per primitive chain) cannot be 1 cm apart.
+DUPLICATE_VERTEX_TOLERANCE_M = 0.01
+INVALID_ID = np.uint32(0xFFFFFFFF)
 
 
 @dataclass
@@ -110,6 +124,7 @@ class RadioScene:
             weather_materials = materials.WEATHER_MATERIALS[weather]
         self.material_overrides = self._apply_weather(weather, weather_materials)
         self.solvers = {True: rt.PathSolver(deterministic=True), False: rt.PathSolver(deterministic=False)}
+        self.cap_retries = 0  # solver calls rerun because their candidates reached the cap
 
     @classmethod
     def from_config(cls, scene_xml: str | Path | None, cfg: SceneConfig, weather: str = "sunny") -> "RadioScene":
@@ -212,33 +227,67 @@ class RadioScene:
         try:
             step = receivers_per_call(rt_cfg, deterministic)
             for start in range(0, num_rx, step):
-                idx = range(start, min(start + step, num_rx))
-                for i in idx:
-                    kw = {}
-                    if rx_velocities is not None:
-                        kw["velocity"] = vec(rx_velocities[i])
-                    if rx_orientations_rad is not None:
-                        kw["orientation"] = vec(rx_orientations_rad[i])
-                    self.scene.add(rt.Receiver(f"rx{i}", position=vec(rx_positions[i]), **kw))
-                paths = self.solvers[deterministic](
-                    self.scene, max_depth=rt_cfg.max_depth,
-                    max_num_paths_per_src=rt_cfg.max_num_paths_per_src,
-                    samples_per_src=rt_cfg.samples_per_src, synthetic_array=True, los=rt_cfg.los,
-                    specular_reflection=rt_cfg.specular_reflection,
-                    diffuse_reflection=rt_cfg.diffuse_reflection, refraction=rt_cfg.refraction,
-                    diffraction=rt_cfg.diffraction, edge_diffraction=rt_cfg.edge_diffraction,
-                    seed=rt_cfg.seed)
-                chunks.append(_to_numpy(paths, num_tx, len(idx), rt_cfg.max_depth,
-                                        self.scene.rx_array.num_ant, self.scene.tx_array.num_ant,
-                                        with_vertices))
-                for i in idx:
-                    self.scene.remove(f"rx{i}")
+                chunks += self._solve(list(range(start, min(start + step, num_rx))),
+                                      int(rt_cfg.max_num_paths_per_src), num_tx, rx_positions,
+                                      rx_velocities, rx_orientations_rad, deterministic)
         finally:
             for i in range(num_tx):
                 self.scene.remove(f"tx{i}")
             for name in list(self.scene.receivers):
                 self.scene.remove(name)
-        return _sort(_concat(chunks))
+        # Sorted first so that the path kept of two duplicates is the earlier one, whatever order
+        # the solver returned them in.
+        d = drop_duplicate_paths(_ordered(_concat(chunks)))
+        if not with_vertices:
+            d.pop("vertices_m")
+        return _sort(d)
+
+    def _solve(self, idx: list[int], cap: int, num_tx: int, rx_positions, rx_velocities,
+               rx_orientations_rad, deterministic: bool) -> list[dict[str, np.ndarray]]:
+        """One PathSolver call for receivers ``idx`` with ``max_num_paths_per_src = cap``; a call
+        whose candidates reach the cap is split in halves (one receiver: the cap doubles)."""
+        import sionna.rt as rt
+
+        rt_cfg = self.solver_config
+
+        def vec(v):
+            return [float(c) for c in v]
+
+        for i in idx:
+            kw = {}
+            if rx_velocities is not None:
+                kw["velocity"] = vec(rx_velocities[i])
+            if rx_orientations_rad is not None:
+                kw["orientation"] = vec(rx_orientations_rad[i])
+            self.scene.add(rt.Receiver(f"rx{i}", position=vec(rx_positions[i]), **kw))
+        try:
+            solver = self.solvers[deterministic]
+            counts = _count_candidates(solver)
+            paths = solver(
+                self.scene, max_depth=rt_cfg.max_depth, max_num_paths_per_src=cap,
+                samples_per_src=rt_cfg.samples_per_src, synthetic_array=True, los=rt_cfg.los,
+                specular_reflection=rt_cfg.specular_reflection,
+                diffuse_reflection=rt_cfg.diffuse_reflection, refraction=rt_cfg.refraction,
+                diffraction=rt_cfg.diffraction, edge_diffraction=rt_cfg.edge_diffraction,
+                seed=rt_cfg.seed)
+            saturated = max(counts, default=0) >= cap
+            if not saturated:
+                out = _to_numpy(paths, num_tx, len(idx), rt_cfg.max_depth,
+                                self.scene.rx_array.num_ant, self.scene.tx_array.num_ant)
+        finally:
+            for i in idx:
+                self.scene.remove(f"rx{i}")
+        if not saturated:
+            return [out]
+        self.cap_retries += 1
+        if len(idx) == 1:
+            return self._solve(idx, 2 * cap, num_tx, rx_positions, rx_velocities,
+                               rx_orientations_rad, deterministic)
+        half = len(idx) // 2
+        return (self._solve(idx[:half], cap, num_tx, rx_positions, rx_velocities, rx_orientations_rad,
+                            deterministic)
+                + self._solve(idx[half:], cap, num_tx, rx_positions, rx_velocities, rx_orientations_rad,
+                              deterministic))
 
     def grid_scan(self, tx_positions: np.ndarray, tx_orientations_rad: np.ndarray,
                   grid_points_m: np.ndarray, deterministic: bool = True) -> TracedPaths:
@@ -248,8 +297,57 @@ class RadioScene:
                           deterministic=deterministic)
 
 
-def _to_numpy(paths, num_tx: int, num_rx: int, max_depth: int, rx_ant: int, tx_ant: int,
-              with_vertices: bool) -> dict[str, np.ndarray]:
+def _count_candidates(solver) -> list[int]:
+    """Hook Sionna's candidate generator (a private attribute of PathSolver in Sionna RT 1.x) so
+    that the returned list receives the candidates stored per source by the next call."""
+    counts: list[int] = []
+    gen = solver._candidate_generator
+    original = getattr(gen, "_simart_original", gen)
+
+    def counting(*args, **kwargs):
+        buf = original(*args, **kwargs)
+        n = int(np.array(buf.paths_counter).ravel()[0])
+        src = np.array(buf.source_indices)[:n].astype(np.int64)
+        counts.extend(np.bincount(src).tolist() if n else [0])
+        return buf
+
+    counting._simart_original = original
+    solver._candidate_generator = counting
+    return counts
+
+
+def drop_duplicate_paths(d: dict[str, np.ndarray],
+                         tolerance_m: float = DUPLICATE_VERTEX_TOLERANCE_M) -> dict[str, np.ndarray]:
+    """Mark invalid every path that repeats an earlier one of the same (receiver, transmitter):
+    equal interaction, object and primitive sequences and every vertex within ``tolerance_m``.
+    The first in path order is kept (deterministic: the solver's order for equal inputs).
+
+    ``d`` holds ``valid`` [rx, tx, path], ``interaction``, ``objects``, ``primitives``
+    [rx, tx, depth, path] and ``vertices_m`` [rx, tx, depth, path, 3]; returns a copy with
+    ``valid`` updated, ``a`` zeroed where dropped, and without ``objects`` and ``primitives``.
+    """
+    valid = d["valid"].copy()
+    inter, obj, prim, vert = d["interaction"], d["objects"], d["primitives"], d["vertices_m"]
+    num_rx, num_tx, num_paths = valid.shape
+    for r in range(num_rx):
+        for t in range(num_tx):
+            groups: dict[bytes, list[int]] = {}
+            for k in np.flatnonzero(valid[r, t]):
+                key = inter[r, t, :, k].tobytes() + obj[r, t, :, k].tobytes() + prim[r, t, :, k].tobytes()
+                kept = groups.setdefault(key, [])
+                if any(np.max(np.abs(vert[r, t, :, k] - vert[r, t, :, j]), initial=0.0) <= tolerance_m
+                       for j in kept):
+                    valid[r, t, k] = False
+                else:
+                    kept.append(k)
+    out = {k: v for k, v in d.items() if k not in ("objects", "primitives")}
+    out["valid"] = valid
+    out["a"] = np.where(valid[:, None, :, None, :], d["a"], 0)
+    return out
+
+
+def _to_numpy(paths, num_tx: int, num_rx: int, max_depth: int, rx_ant: int,
+              tx_ant: int) -> dict[str, np.ndarray]:
     # Explicit shapes: a call with no path has zero-size arrays.
     num_paths = np.array(paths.tau).shape[-1]
     shape = (num_rx, num_tx, num_paths)
@@ -264,19 +362,22 @@ def _to_numpy(paths, num_tx: int, num_rx: int, max_depth: int, rx_ant: int, tx_a
         "doppler_hz": np.array(paths.doppler).reshape(shape),
         "valid": np.array(paths.valid).astype(bool).reshape(shape),
     }
-    inter = np.array(paths.interactions).astype(np.uint8)
-    inter = inter.reshape(max_depth, num_rx, num_tx, num_paths) if max_depth else \
-        np.zeros((0, num_rx, num_tx, num_paths), np.uint8)
-    out["interaction"] = np.moveaxis(inter, 0, 2)  # [rx, tx, depth, path]
-    if with_vertices:
-        v = np.array(paths.vertices).astype(np.float32)
-        v = v.reshape(max_depth, num_rx, num_tx, num_paths, 3) if max_depth else \
-            np.zeros((0, num_rx, num_tx, num_paths, 3), np.float32)
-        out["vertices_m"] = np.moveaxis(v, 0, 2)  # [rx, tx, depth, path, 3]
+    for key, attr, dtype in (("interaction", "interactions", np.uint8), ("objects", "objects", np.uint32),
+                             ("primitives", "primitives", np.uint32)):
+        v = np.array(getattr(paths, attr)).astype(dtype)
+        v = v.reshape(max_depth, num_rx, num_tx, num_paths) if max_depth else \
+            np.zeros((0, num_rx, num_tx, num_paths), dtype)
+        out[key] = np.moveaxis(v, 0, 2)  # [rx, tx, depth, path]
+    # Vertices always: the duplicate test compares them.
+    v = np.array(paths.vertices).astype(np.float32)
+    v = v.reshape(max_depth, num_rx, num_tx, num_paths, 3) if max_depth else \
+        np.zeros((0, num_rx, num_tx, num_paths, 3), np.float32)
+    out["vertices_m"] = np.moveaxis(v, 0, 2)  # [rx, tx, depth, path, 3]
     return out
 
 
-_FILL = {"valid": False, "a": 0, "interaction": 0, "tau_s": INVALID_DELAY_S}
+_FILL = {"valid": False, "a": 0, "interaction": 0, "tau_s": INVALID_DELAY_S,
+         "objects": INVALID_ID, "primitives": INVALID_ID}
 
 
 def _concat(chunks: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
@@ -296,6 +397,13 @@ def _concat(chunks: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
 
 
 def _sort(d: dict[str, np.ndarray]) -> TracedPaths:
+    out = _ordered(d)
+    names = {f.name for f in fields(TracedPaths)}
+    return TracedPaths(**{k: v for k, v in out.items() if k in names})
+
+
+def _ordered(d: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Per (receiver, transmitter): valid first, then by delay, then by interaction sequence."""
     valid = d["valid"]
     tau = np.where(valid, d["tau_s"], np.inf)
     inter = d["interaction"]  # [rx, tx, depth, path]
@@ -306,7 +414,7 @@ def _sort(d: dict[str, np.ndarray]) -> TracedPaths:
     def take(key, v):
         if key == "a":  # [rx, rx_ant, tx, tx_ant, path]
             return np.take_along_axis(v, order[:, None, :, None, :], axis=-1)
-        if key == "interaction":  # [rx, tx, depth, path]
+        if key in ("interaction", "objects", "primitives"):  # [rx, tx, depth, path]
             return np.take_along_axis(v, order[:, :, None, :], axis=-1)
         if key == "vertices_m":  # [rx, tx, depth, path, 3]
             return np.take_along_axis(v, order[:, :, None, :, None], axis=-2)
@@ -321,5 +429,4 @@ def _sort(d: dict[str, np.ndarray]) -> TracedPaths:
     out["interaction"] = np.where(vs[:, :, None, :], out["interaction"], 0).astype(np.uint8)
     if "vertices_m" in out:
         out["vertices_m"] = np.where(vs[:, :, None, :, None], out["vertices_m"], 0).astype(np.float32)
-    names = {f.name for f in fields(TracedPaths)}
-    return TracedPaths(**{k: v for k, v in out.items() if k in names})
+    return out
