@@ -47,3 +47,31 @@ def test_bler_in_unit_interval(mcs, cbs, db):
     out = table.bler(mcs, cbs, 10.0 ** (db / 10.0))
     if table.available[mcs]:
         assert 0.0 <= out <= 1.0
+
+
+from simart_pipeline.ckm.moments import layers_from_moments, path_moments  # noqa: E402
+
+
+@BOUNDED
+@given(st.integers(0, 300), st.integers(0, 2**32 - 1))
+def test_cell_layers_zero_one_many_paths_finite_nonnegative_and_order_free(n, seed):
+    rng = np.random.default_rng(seed)
+    power = 10.0 ** (rng.uniform(-300.0, 0.0, (1, n)) / 10.0)
+    delay = rng.uniform(1e-11, 20e3 / 3e8, (1, n))
+    valid = np.ones((1, n), bool)
+    los = np.zeros((1, n), bool)
+    ang = rng.uniform(-np.pi, np.pi, (1, n, 4))
+    tau0 = np.min(delay, axis=-1) if n else np.zeros(1)
+    a = layers_from_moments(path_moments(power, delay, valid, los, ang, tau0))
+    perm = rng.permutation(n)
+    b = layers_from_moments(path_moments(power[:, perm], delay[:, perm], valid, los,
+                                         ang[:, perm], tau0))
+    for key, v in a.items():
+        v = np.asarray(v, dtype=np.float64)
+        if n == 0:
+            assert not a["has_path"][0]
+            continue
+        assert np.all(np.isfinite(v)), key
+        assert np.allclose(v, np.asarray(b[key], np.float64), rtol=1e-9, atol=1e-12), key
+    if n:
+        assert a["rms_delay_spread_s"][0] >= 0.0
