@@ -69,3 +69,18 @@ def test_non_mapping_or_broken_yaml_is_a_config_error(text, tmp_path):
     with pytest.raises(ConfigError) as err:
         load_scene_config(tmp_path)
     assert all(line.startswith(f"{tmp_path / 'scene.yaml'}: ") for line in err.value.problems)
+
+
+@pytest.mark.parametrize("text", ["", "[1, 2]", "key: [unclosed", "unknown_key: 1\n"])
+def test_simart_validate_of_a_broken_scene_exits_non_zero_without_traceback(text, tmp_path, capsys):
+    from simart_pipeline.cli import main
+
+    (tmp_path / "scene.yaml").write_text(text)
+    try:
+        code = main(["validate", str(tmp_path)])
+    except SystemExit as exc:
+        code = exc.code
+    out = capsys.readouterr()
+    assert code not in (0, None)
+    assert "Traceback" not in out.out + out.err
+    assert str(tmp_path / "scene.yaml") in out.out + out.err
