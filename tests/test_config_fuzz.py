@@ -84,3 +84,11 @@ def test_simart_validate_of_a_broken_scene_exits_non_zero_without_traceback(text
     assert code not in (0, None)
     assert "Traceback" not in out.out + out.err
     assert str(tmp_path / "scene.yaml") in out.out + out.err
+
+
+def test_broken_yaml_is_one_line_with_its_line_number(tmp_path):
+    (tmp_path / "scene.yaml").write_text("a: 1\nkey: [unclosed\n")
+    with pytest.raises(ConfigError) as err:
+        load_scene_config(tmp_path)
+    (line,) = err.value.problems
+    assert "\n" not in line and line.startswith(f"{tmp_path / 'scene.yaml'}: line ")
