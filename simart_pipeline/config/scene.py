@@ -112,7 +112,10 @@ def load_scene_config(scene_dir: str | Path) -> SceneConfig:
     try:
         raw = yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
-        raise ConfigError([f"{path}: not valid YAML: {exc}"]) from None
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "(top level)"
+        what = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ConfigError([f"{path}: {where}: not valid YAML: {what}"]) from None
     if not isinstance(raw, dict):
         raise ConfigError([f"{path}: (top level): expected a mapping of keys, got {type(raw).__name__}"])
     try:
