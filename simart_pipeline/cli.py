@@ -59,16 +59,10 @@ def _check_parent(out: Path, what: str) -> None:
 
 
 def _scene_problems(scene_dir):
-    """``validation.scene_problems``, with a scene.yaml that cannot be read or decoded reported as
-    a problem of that file rather than raised (the config loader raises those as they come)."""
+    # a scene.yaml that cannot be read or decoded is a ConfigError problem line (config.load_scene_config)
     from simart_pipeline.validation import scene_problems
 
-    try:
-        return scene_problems(scene_dir)
-    except UnicodeDecodeError as exc:
-        return None, [f"{Path(scene_dir) / 'scene.yaml'}: not UTF-8 text: {exc.reason} at byte {exc.start}"]
-    except OSError as exc:
-        return None, [f"{Path(scene_dir) / 'scene.yaml'}: cannot be read: {_os_problem(exc)}"]
+    return scene_problems(scene_dir)
 
 
 def cmd_validate(args) -> int:
@@ -383,10 +377,7 @@ def cmd_ckm(args) -> int:
         raise CliError(f"{out}: --export: give a .zarr path (a standalone copy of the map)")
     scene_dir = Path(args.scene) if Path(args.scene, "scene.yaml").is_file() else \
         reg.scene_dir(args.scene, data_root, reg.default_scenes_root())
-    try:
-        cfg = load_scene_config(scene_dir)
-    except UnicodeDecodeError as exc:
-        raise CliError(f"{Path(scene_dir) / 'scene.yaml'}: not UTF-8 text: {exc.reason}") from exc
+    cfg = load_scene_config(scene_dir)
     source = map_path(data_root, cfg.name, map_name_for_weather(cfg, args.weather) if args.weather
                       else next(iter(map_groups(cfg))))
     ds = open_scene_map(data_root, cfg, args.weather)

@@ -217,7 +217,7 @@ def test_run_argument_failures_are_one_line(tiny_scene, tmp_path, capsys):
     _fails_with_one_line(["run", str(tiny_scene), "--data", str(data), "--tile", "r9c9"], capsys,
                          "error: --tile r9c9: not among the tiles of scene 'tiny': ['r0c0'")
     _fails_with_one_line(["run", str(tmp_path / "nowhere"), "--data", str(data)], capsys,
-                         f"- {tmp_path / 'nowhere' / 'scene.yaml'}: no scene.yaml")
+                         f"- {tmp_path / 'nowhere' / 'scene.yaml'}: (top level): no scene.yaml")
     assert not list(data.rglob("*.zarr"))  # nothing was run
 
 
@@ -239,9 +239,9 @@ def test_validate_failures_are_one_line(tmp_path, capsys):
     (bad_yaml / "scene.yaml").write_text("name: [unclosed\n")
     (not_utf8 / "scene.yaml").write_bytes(b"\xff\xfename: x\n")
     (yaml_dir / "scene.yaml").mkdir()
-    _fails_with_one_line(["validate", str(bad_yaml)], capsys, f"- {bad_yaml / 'scene.yaml'}: not valid YAML:",
-                         "line 2, column 1")
-    _fails_with_one_line(["validate", str(not_utf8)], capsys, f"- {not_utf8 / 'scene.yaml'}: not UTF-8 text")
+    _fails_with_one_line(["validate", str(bad_yaml)], capsys,
+                         f"- {bad_yaml / 'scene.yaml'}: line 2, column 1: not valid YAML:")
+    _fails_with_one_line(["validate", str(not_utf8)], capsys, f"- {not_utf8 / 'scene.yaml'}: (top level): not UTF-8 text")
     _fails_with_one_line(["validate", str(yaml_dir)], capsys, f"- {yaml_dir / 'scene.yaml'}:")
 
 

@@ -2,8 +2,12 @@
 raise ConfigError with one ``file: key.path: message`` line per problem; never a traceback."""
 
 import math
+import os
 import random
+import re
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -46,21 +50,111 @@ def _mutate(raw, rng):
     return raw
 
 
+# one problem line: the file, a key path (dotted, list indices as numbers) or a place in the YAML
+# text, and a message, all on one line
+KEY_PATH = r"(\(top level\)|line \d+, column \d+|[A-Za-z_][\w-]*(\.[\w-]+)*)"
+
+
+def assert_problem_line(line: str, file: Path) -> None:
+    assert "\n" not in line, line
+    assert re.fullmatch(re.escape(str(file)) + ": " + KEY_PATH + r": \S.*", line), line
+
+
 @pytest.mark.parametrize("scene", SCENES, ids=lambda p: p.name)
-def test_mutated_scene_yaml_loads_or_lists_problems(scene, tmp_path):
+def test_mutated_scene_yaml_loads_or_lists_problems(scene, tmp_path, capsys):
+    from simart_pipeline.cli import main
+
     rng = random.Random(16)
     original = yaml.safe_load((scene / "scene.yaml").read_text())
+    validated = 0
     for i in range(40):
-        work = tmp_path / f"m{i}"
+        work = tmp_path / f"m{i}" / scene.name  # the folder keeps the scene's name
         shutil.copytree(scene, work, symlinks=True)
-        raw = _mutate(yaml.safe_load(yaml.safe_dump(original)), rng)
+        raw = yaml.safe_load(yaml.safe_dump(original))
+        for _ in range(rng.randint(1, 3)):
+            raw = _mutate(raw, rng)
         (work / "scene.yaml").write_text(yaml.safe_dump(raw, allow_unicode=True))
         try:
             load_scene_config(work)
         except ConfigError as exc:
             assert exc.problems
             for line in exc.problems:
-                assert line.startswith(f"{work / 'scene.yaml'}: "), line
+                assert_problem_line(line, work / "scene.yaml")
+            if validated < 8:  # `simart validate` of the same file: the same lines, exit 1, no trace
+                validated += 1
+                assert main(["validate", str(work)]) == 1
+                out = capsys.readouterr()
+                assert "Traceback" not in out.out + out.err
+                listed = [ln[4:] for ln in out.err.splitlines() if ln.startswith("  - ")]
+                assert listed == exc.problems
+
+
+def test_mutated_scenes_through_a_real_process_end_in_problem_lines(tmp_path):
+    rng = random.Random(7)
+    scene = next(p for p in SCENES if p.name == "tiny")
+    original = yaml.safe_load((scene / "scene.yaml").read_text())
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    for i in range(3):
+        work = tmp_path / f"p{i}" / "tiny"
+        shutil.copytree(scene, work)
+        raw = yaml.safe_load(yaml.safe_dump(original))
+        raw["clock"]["duration_s"] = [math.nan, "ten", -1.0][i]
+        raw = _mutate(raw, rng)
+        (work / "scene.yaml").write_text(yaml.safe_dump(raw, allow_unicode=True))
+        res = subprocess.run([sys.executable, "-m", "simart_pipeline.cli", "validate", str(work)],
+                             capture_output=True, text=True, env=env, timeout=300)
+        assert res.returncode == 1 and "Traceback" not in res.stdout + res.stderr
+        lines = [ln[4:] for ln in res.stderr.splitlines() if ln.startswith("  - ")]
+        assert lines and any(ln.startswith(f"{work / 'scene.yaml'}: clock.duration_s: ") for ln in lines)
+        for ln in lines:
+            assert_problem_line(ln, work / "scene.yaml")
+
+
+def _with_path(scene: Path, key: str, value: str) -> None:
+    raw = yaml.safe_load((scene / "scene.yaml").read_text())
+    if key == "source.path":
+        raw["source"] = {"kind": "osm", "path": value}
+    elif key == "platforms.0.trajectory.path":
+        raw["platforms"][0]["trajectory"] = {"kind": "replay", "path": value}
+    elif key == "sensor_imports.0.path":
+        raw["sensor_imports"] = [{"path": value, "streams": [
+            {"device": raw["platforms"][0]["name"], "sensor": "cam", "kind": "camera", "topic": "/image"}]}]
+    elif key == "codebook.path":
+        raw["codebook"] = {"path": value}
+    (scene / "scene.yaml").write_text(yaml.safe_dump(raw))
+
+
+PATH_KEYS = ["source.path", "platforms.0.trajectory.path", "sensor_imports.0.path", "codebook.path"]
+
+
+@pytest.mark.parametrize("key", PATH_KEYS)
+@pytest.mark.parametrize("how", ["dotdot", "absolute", "symlink_file", "symlink_dir"])
+def test_paths_out_of_the_scene_folder_are_refused_by_key(key, how, tmp_path):
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "x.osm").write_text("<osm/>")
+    (outside / "x.csv").write_text("time_ns,x_m,y_m,z_m\n0,0,0,0\n1,1,0,0\n")
+    scene = tmp_path / "tiny"
+    shutil.copytree(next(p for p in SCENES if p.name == "tiny"), scene)
+    name = {"source.path": "x.osm", "platforms.0.trajectory.path": "x.csv", "sensor_imports.0.path": "x.bag",
+            "codebook.path": "x.npy"}[key]
+    (outside / name).write_bytes(b"0")
+    if how == "dotdot":
+        value = f"../outside/{name}"
+    elif how == "absolute":
+        value = str(outside / name)
+    elif how == "symlink_file":
+        (scene / name).symlink_to(outside / name)
+        value = name
+    else:
+        (scene / "linked").symlink_to(outside, target_is_directory=True)
+        value = f"linked/{name}"
+    _with_path(scene, key, value)
+    with pytest.raises(ConfigError) as exc:
+        load_scene_config(scene)
+    mine = [p for p in exc.value.problems if p.startswith(f"{scene / 'scene.yaml'}: {key}: ")]
+    assert mine and any("inside the scene directory" in p or "points outside the scene directory" in p
+                        for p in mine), exc.value.problems
 
 
 @pytest.mark.parametrize("text", ["", "[1, 2]", "key: [unclosed", "\t- x: :"])
@@ -84,6 +178,18 @@ def test_simart_validate_of_a_broken_scene_exits_non_zero_without_traceback(text
     assert code not in (0, None)
     assert "Traceback" not in out.out + out.err
     assert str(tmp_path / "scene.yaml") in out.out + out.err
+
+
+@pytest.mark.parametrize("content", [b"name: caf\xe9\n", b"\xff\xfe\x00", None])
+def test_unreadable_scene_yaml_is_one_problem_line(content, tmp_path):
+    if content is None:
+        (tmp_path / "scene.yaml").mkdir()  # not a file at all
+    else:
+        (tmp_path / "scene.yaml").write_bytes(content)
+    with pytest.raises(ConfigError) as err:
+        load_scene_config(tmp_path)
+    (line,) = err.value.problems
+    assert_problem_line(line, tmp_path / "scene.yaml")
 
 
 def test_broken_yaml_is_one_line_with_its_line_number(tmp_path):

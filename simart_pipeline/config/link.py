@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
-from simart_pipeline.config.base import Vec2, _Model
+from simart_pipeline.config.base import Vec2, _inside_scene_dir, _Model
 
 
 class Receiver(_Model):
@@ -26,6 +26,8 @@ class Codebook(_Model):
     oversampling: int = Field(1, ge=1, le=8)
     visible_only: bool = False
     path: str | None = None
+    _inside = field_validator("path")(classmethod(
+        lambda cls, v: v if v is None else _inside_scene_dir(v, "the codebook")))
 
 
 class Link(_Model):

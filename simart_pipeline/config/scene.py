@@ -108,9 +108,13 @@ def load_scene_config(scene_dir: str | Path) -> SceneConfig:
     scene_dir = Path(scene_dir)
     path = scene_dir / "scene.yaml"
     if not path.is_file():
-        raise ConfigError([f"{path}: no scene.yaml in {scene_dir}"])
+        raise ConfigError([f"{path}: (top level): no scene.yaml in {scene_dir}"])
     try:
-        raw = yaml.safe_load(path.read_text())
+        raw = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ConfigError([f"{path}: (top level): not UTF-8 text (byte {exc.start}: {exc.reason})"]) from None
+    except OSError as exc:
+        raise ConfigError([f"{path}: (top level): cannot read it: {exc.strerror or exc}"]) from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "(top level)"
@@ -147,8 +151,13 @@ def load_scene_config(scene_dir: str | Path) -> SceneConfig:
             problems.append(f"{path}: sensor_imports.{i}.path: bag not found: {bag}")
     if cfg.source.kind in ("osm", "mesh"):
         src = resolve_source_path(scene_dir, cfg)
-        if not src.is_file():
+        if not src.is_relative_to(scene_dir.resolve()):
+            problems.append(f"{path}: source.path: {cfg.source.path!r} points outside the scene directory")
+        elif not src.is_file():
             problems.append(f"{path}: source.path: file not found: {src}")
+    if cfg.codebook.path is not None and not (scene_dir / cfg.codebook.path).resolve().is_relative_to(
+            scene_dir.resolve()):
+        problems.append(f"{path}: codebook.path: {cfg.codebook.path!r} points outside the scene directory")
     if problems:
         raise ConfigError(problems)
     return cfg
