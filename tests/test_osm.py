@@ -6,6 +6,7 @@ plain pyosmium handler (no area assembly, no reader code).
 
 import logging
 import re
+import shutil
 
 import numpy as np
 import osmium
@@ -260,10 +261,17 @@ def _osm_scene(tmp_path, source_path: str):
 
 def test_scene_config_reads_an_extract_inside_its_folder(tmp_path):
     d = _osm_scene(tmp_path, "extract.osm")
-    (d / "extract.osm").symlink_to(OSM / "small_block.osm")   # a link the user placed: allowed
+    shutil.copyfile(OSM / "small_block.osm", d / "extract.osm")
     cfg = load_scene_config(d)
     geom = source.build_source_geometry(cfg, d)
     assert geom.origin == (48.136, 10.069, 0.0) and len(geom.of_class("building")) > 20
+
+
+def test_a_symlink_leading_out_of_the_scene_folder_is_refused(tmp_path):
+    d = _osm_scene(tmp_path, "extract.osm")
+    (d / "extract.osm").symlink_to(OSM / "small_block.osm")  # the same rule as recordings and bags
+    with pytest.raises(ConfigError, match=r"source\.path: 'extract\.osm' points outside the scene directory"):
+        load_scene_config(d)
 
 
 @pytest.mark.parametrize("bad", ["../outside.osm", "/etc/passwd", "sub/../../x.osm"])
