@@ -51,6 +51,8 @@ class SemanticClass(IntEnum):
     VEGETATION = 4
     WATER = 5
     VEHICLE = 6
+    UAV = 7          # actor bodies (sensing/bodies.py): one instance id per platform
+    PEDESTRIAN = 8
 
 
 SEMANTIC_CLASS_NAMES: tuple[str, ...] = tuple(c.name.lower() for c in SemanticClass)

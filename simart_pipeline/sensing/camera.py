@@ -37,6 +37,8 @@ CLASS_ALBEDO = {
     SemanticClass.VEGETATION: (0.10, 0.25, 0.08),
     SemanticClass.WATER: (0.05, 0.10, 0.15),
     SemanticClass.VEHICLE: (0.50, 0.10, 0.10),
+    SemanticClass.UAV: (0.60, 0.55, 0.10),
+    SemanticClass.PEDESTRIAN: (0.45, 0.30, 0.35),
 }
 SHADING_MODEL = ("Lambert: per-class albedo (per-instance tint) x (ambient + sun with ray-cast shadows "
                  "+ camera lamp cone, inverse square + street lamps over the roads, inverse square, "
