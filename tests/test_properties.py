@@ -214,3 +214,22 @@ def test_mcs_selection_bler_and_rate_are_bounded_for_any_sinr(db):
     # more SINR on every element never lowers the chosen MCS
     mcs_up = select_mcs_inner_loop(phy, 10 ** ((db + 3.0) / 10), 0.1)[0]
     assert np.all(mcs_up >= mcs)
+
+
+@BOUNDED
+@given(st.integers(0, 2**32 - 1), st.integers(1, 8))
+def test_station_sinr_nonnegative_finite_and_order_invariant(seed, n_bs):
+    from simart_pipeline.link.budget import power_db, station_sinr
+
+    rng = np.random.default_rng(seed)
+    gain = 10 ** (rng.uniform(-300, 0, (n_bs, 5)) / 10) * (rng.random((n_bs, 5)) < 0.8)  # 0: no path
+    p_re = 10 ** ((rng.uniform(-10, 50) - 30) / 10) / 1000
+    noise = 10 ** ((-174 + 10 * np.log10(30e3) + 7 - 30) / 10)
+    sinr = station_sinr(p_re * gain, p_re * gain * 0.5, noise)
+    assert np.all(np.isfinite(sinr)) and np.all(sinr >= 0)
+    perm = rng.permutation(n_bs)
+    # one dominant station must not turn the others' interference into rounding noise (total - own did)
+    np.testing.assert_allclose(station_sinr(p_re * gain[perm], p_re * gain[perm] * 0.5, noise), sinr[perm],
+                               rtol=1e-12)
+    db = power_db(gain)
+    assert np.array_equal(np.isnan(db), gain <= 0) and np.all(db[gain > 0] >= -300 - 1e-9)

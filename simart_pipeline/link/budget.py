@@ -83,8 +83,12 @@ def station_sinr(signal_w, mean_interference_w, noise_w, axis: int = 0) -> np.nd
     """SINR of each station (along ``axis``) if it served, single receive antenna: its signal over
     the expected interference of all the others (``mean_interference_w``: each station's power
     with a beam drawn uniformly from its codebook, 0 where it does not reach) plus noise."""
-    total = np.sum(mean_interference_w, axis=axis, keepdims=True)
-    return sinr_per_re(signal_w, total - mean_interference_w, noise_w)
+    # the others' sum as (sum before) + (sum after): sums of non-negative terms, never total - own,
+    # which cancels to rounding noise (and depends on the stations' order) when one station dominates
+    m = np.moveaxis(np.asarray(mean_interference_w, dtype=np.float64), axis, 0)
+    before = np.concatenate([np.zeros_like(m[:1]), np.cumsum(m, axis=0)[:-1]])
+    after = np.concatenate([np.cumsum(m[::-1], axis=0)[:-1][::-1], np.zeros_like(m[:1])])
+    return sinr_per_re(signal_w, np.moveaxis(before + after, 0, axis), noise_w)
 
 
 def serving_station(best_sinr, candidate, axis: int = -1) -> tuple[np.ndarray, np.ndarray]:
