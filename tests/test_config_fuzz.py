@@ -198,3 +198,21 @@ def test_broken_yaml_is_one_line_with_its_line_number(tmp_path):
         load_scene_config(tmp_path)
     (line,) = err.value.problems
     assert "\n" not in line and line.startswith(f"{tmp_path / 'scene.yaml'}: line ")
+
+
+@pytest.mark.parametrize("ckm, expected", [
+    ({"size_m": [0.0, 10.0]}, "size_m: each side must be within (0, 100000] m"),
+    ({"size_m": [-40.0, 30.0]}, "size_m: each side must be within (0, 100000] m"),
+    ({"size_m": [1e5, 1e5], "cell_size_m": 0.5}, "the grid has 40,000,000,000 cells"),
+])
+def test_ckm_grids_no_machine_holds_are_refused_by_key(ckm, expected, tmp_path):
+    scene = tmp_path / "tiny"
+    shutil.copytree(next(p for p in SCENES if p.name == "tiny"), scene)
+    raw = yaml.safe_load((scene / "scene.yaml").read_text())
+    raw["ckm"].update(ckm)
+    (scene / "scene.yaml").write_text(yaml.safe_dump(raw))
+    with pytest.raises(ConfigError) as exc:
+        load_scene_config(scene)
+    (line,) = exc.value.problems
+    assert_problem_line(line, scene / "scene.yaml")
+    assert line.startswith(f"{scene / 'scene.yaml'}: ckm") and expected in line, line

@@ -115,6 +115,11 @@ def test_free_space_gain_is_friis_with_the_element_pattern_toa_is_distance_sprea
     heights = np.array([1.5, 5.0])
     m = op.one_pass_moments(free_space, tx, ori, x, y, heights, 1_000_000, 3)
     L = m.layers()
+    # the few-ray guard of the pipeline applies to the solver's own layers too
+    few = m.count < m.min_count_for_power
+    assert m.min_count_for_power == op.DEFAULT_MIN_HITS_FOR_POWER
+    assert np.array_equal(L["enough_hits"], (m.count >= m.min_count_for_power) & L["has_path"])
+    assert np.all(np.isnan(L["path_gain_db"][few]))
     R = Rotation.from_euler("ZYX", ori).as_matrix()
     for k, h in enumerate(heights):
         p = _sub_points(x, y, 2.0, h)

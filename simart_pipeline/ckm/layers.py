@@ -124,7 +124,8 @@ def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, t
             radio, np.asarray(b.position_m, np.float64), np.deg2rad(np.asarray(b.orientation_deg, np.float64)),
             grid.x, grid.y, grid.heights, num_rays=cfg.ckm.num_rays, max_depth=cfg.ray_tracing.max_depth,
             codebook=weights, tx_ant_positions_m=tx_ant_positions_m,
-            min_hits_for_spread=cfg.ckm.min_hits_for_spread, cell_size_m=cfg.ckm.cell_size_m,
+            min_hits_for_spread=cfg.ckm.min_hits_for_spread, min_hits_for_power=cfg.ckm.min_hits_for_power,
+            cell_size_m=cfg.ckm.cell_size_m,
             indoor=grid.inside_building | grid.outside_region[None],
             # as the reference mode's receiver: its polarisation, not the whole field
             rx_polarization=rx.polarization if rx.pattern == "iso" else None))

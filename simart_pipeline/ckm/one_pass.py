@@ -57,23 +57,26 @@ __all__ = ["OnePassMoments", "beam_factors", "one_pass_moments", "outdoor_fracti
 
 DEFAULT_BATCH_RAYS = 1 << 20  # about 0.5 GB of ray state on the LLVM backend
 DEFAULT_MIN_HITS_FOR_SPREAD = 10
+DEFAULT_MIN_HITS_FOR_POWER = 5  # config.Ckm.min_hits_for_power's default; the reasoning is there
 DEFAULT_MIN_OUTDOOR_FRACTION = 0.5
 
 
 @dataclass
 class OnePassMoments(CellMoments):
     """:class:`CellMoments` of the one-pass solver, grid shape ``[num_heights, ny, nx]``, plus what
-    it was run with: ``min_count_for_spread`` (ray hits a cell needs for spreads and mean angles)
-    and ``outdoor_fraction`` (``[num_heights, ny, nx]``, share of the cell's area outside buildings;
+    it was run with: ``min_count_for_spread`` (ray hits a cell needs for spreads and mean angles),
+    ``min_count_for_power`` (for path gain, ToA, LoS and beams) and ``outdoor_fraction`` (``[num_heights, ny, nx]``, share of the cell's area outside buildings;
     cells below the solver's ``min_outdoor_fraction`` or flagged ``indoor`` hold zero moments)."""
 
     min_count_for_spread: int = 1
+    min_count_for_power: int = 1
     outdoor_fraction: np.ndarray | None = None
     masked: np.ndarray | None = None  # [num_heights, ny, nx] bool: indoor or too little outdoor area
 
     def layers(self) -> dict[str, np.ndarray]:
-        """:func:`layers_from_moments` with this run's ``min_count_for_spread``."""
-        return layers_from_moments(self, self.min_count_for_spread)
+        """:func:`layers_from_moments` with this run's ``min_count_for_spread`` and
+        ``min_count_for_power`` (the pipeline's ckm/layers.py applies the same config values)."""
+        return layers_from_moments(self, self.min_count_for_spread, self.min_count_for_power)
 
     def merge(self, other: "CellMoments") -> "OnePassMoments":
         """Sums of two disjoint sets of rays over the same grid (e.g. two solver runs)."""
@@ -82,6 +85,7 @@ class OnePassMoments(CellMoments):
             CellMoments(**{k: getattr(other, k) for k in base}))
         return OnePassMoments(**{k: getattr(merged, k) for k in base},
                               min_count_for_spread=self.min_count_for_spread,
+                              min_count_for_power=self.min_count_for_power,
                               outdoor_fraction=self.outdoor_fraction, masked=self.masked)
 
 
@@ -211,7 +215,7 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                      heights_m: np.ndarray, num_rays: int, max_depth: int,
                      codebook: np.ndarray | None = None, tx_ant_positions_m: np.ndarray | None = None,
                      batch_rays: int = DEFAULT_BATCH_RAYS, min_hits_for_spread: int = DEFAULT_MIN_HITS_FOR_SPREAD,
-                     *, cell_size_m: float | None = None, indoor: np.ndarray | None = None,
+                     *, min_hits_for_power: int = DEFAULT_MIN_HITS_FOR_POWER, cell_size_m: float | None = None, indoor: np.ndarray | None = None,
                      min_outdoor_fraction: float = DEFAULT_MIN_OUTDOOR_FRACTION,
                      rx_polarization: str | None = None, los: bool = True, specular_reflection: bool = True,
                      refraction: bool = False, diffraction: bool = False,
@@ -231,7 +235,7 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         ``tx_array`` positions)
     :param batch_rays: rays traced at once (memory bound; the result does not depend on it)
     :param min_hits_for_spread: hits a cell needs for spreads and mean angles
-        (:meth:`OnePassMoments.layers`)
+        (:meth:`OnePassMoments.layers`); ``min_hits_for_power``: for path gain, ToA, LoS and beams
     :param indoor: optional bool mask, broadcastable to ``[num_heights, ny, nx]``: cells to mask
     :param min_outdoor_fraction: cells with less of their area outside buildings
         (:func:`outdoor_fraction`) are masked; the others have their sums divided by that share
@@ -296,4 +300,5 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
     m.count = np.where(masked, 0, m.count)
     m.min_delay_s = np.where(masked, np.inf, m.min_delay_s)
     return OnePassMoments(**{f.name: getattr(m, f.name) for f in fields(CellMoments)},
-                          min_count_for_spread=int(min_hits_for_spread), outdoor_fraction=frac, masked=masked)
+                          min_count_for_spread=int(min_hits_for_spread),
+                          min_count_for_power=int(min_hits_for_power), outdoor_fraction=frac, masked=masked)

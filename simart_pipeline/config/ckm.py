@@ -13,6 +13,12 @@ from simart_pipeline.vocabulary import WeatherName
 MAX_TILES_PER_AXIS = 4  # the static tile partitions are r0c0 .. r3c3 (partitions/__init__.py)
 
 
+# Bounds that keep a typo from asking for a grid no machine holds: a 100 km side; 1e8 cells
+# (a 10 km x 10 km district at 1 m, one height; each layer is then 400 MB of float32).
+MAX_GRID_SIDE_M = 100_000.0
+MAX_CELLS = 100_000_000
+
+
 class Ckm(_Model):
     """Channel-knowledge-map grid: horizontal planes at one or more heights, split into tiles (the
     tile partitions). Cells inside buildings or outside ``region_m`` are masked and never traced."""
@@ -43,6 +49,13 @@ class Ckm(_Model):
         None, description="weathers whose radio materials get a map (default: the scene's); weathers "
         "with equal materials share one map")
 
+    @field_validator("size_m")
+    @classmethod
+    def _size(cls, v):
+        if not all(0 < s <= MAX_GRID_SIDE_M for s in v):
+            raise ValueError(f"size_m: each side must be within (0, {MAX_GRID_SIDE_M:g}] m")
+        return v
+
     @field_validator("tiles")
     @classmethod
     def _tiles(cls, v):
@@ -58,6 +71,10 @@ class Ckm(_Model):
             raise ValueError("heights_m: at least one height, none repeated")
         if self.region_m is not None and len(self.region_m) < 3:
             raise ValueError("region_m: a polygon needs at least three vertices")
+        cells = self.shape[0] * self.shape[1] * len(self.heights)
+        if cells > MAX_CELLS:
+            raise ValueError(f"the grid has {cells:,} cells (size_m / cell_size_m per side, times the heights); "
+                             f"at most {MAX_CELLS:,}: make cell_size_m larger or the grid smaller")
         return self
 
     @property
