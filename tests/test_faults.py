@@ -406,3 +406,25 @@ def test_a_killed_simart_run_is_completed_by_the_next(tmp_path):
     leftovers = [q for q in data.rglob(".*") if ".tmp-" in q.name or ".old-" in q.name]
     assert not leftovers, leftovers  # the rerun rewrote what the kill interrupted, and cleaned up
     assert "computing" in r.stdout  # the kill left work to do
+
+
+def test_a_tile_rewrite_removes_only_its_own_partial_chunks(tmp_path):
+    """A killed writer's ``.partial`` chunk files are found by each array's own dims: a layer with a
+    beam dim after x keeps another tile's file (a live writer's, perhaps) whose name and folder look
+    like this tile's in a (y, x) layer."""
+    from simart_pipeline.ckm import mosaic
+
+    path = stores.create_chunked_store(
+        tmp_path / "m.zarr",
+        {"g": (("y", "x"), (4, 4), np.float32, {"nan_means": "absent"}, (2, 2)),
+         "b": (("height", "y", "x", "beam"), (1, 4, 4, 3), np.float32, {"nan_means": "absent"}, (1, 2, 2, 3))},
+        {}, {})
+    hexid = "0123456789abcdef0123456789abcdef"
+    own = [path / "g" / "c" / "0" / f"0.{hexid}.partial", path / "b" / "c" / "0" / "0" / "0" / f"0.{hexid}.partial"]
+    others = [path / "g" / "c" / "1" / f"0.{hexid}.partial",              # tile r1c0 of g
+              path / "b" / "c" / "0" / "1" / "0" / f"0.{hexid}.partial"]  # tile r1c0 of b: name 0, folder 0
+    for f in own + others:
+        f.parent.mkdir(parents=True, exist_ok=True)
+        f.write_bytes(b"half")
+    mosaic._remove_partial_chunks(path, 0, 0)
+    assert not any(f.exists() for f in own) and all(f.exists() for f in others)

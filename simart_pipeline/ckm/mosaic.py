@@ -95,10 +95,19 @@ def tile_is_current(path: Path, tile: str, map_version: str, tile_version: int) 
 
 def _remove_partial_chunks(path: Path, r: int, c: int) -> None:
     """Delete the half-written chunk files (``<chunk>.<uuid>.partial``, zarr's LocalStore) that a run
-    killed while writing tile (r, c) left in its chunk directories: readers ignore them, but they
-    would pile up. Only this tile's writer writes these chunks, so none is in use."""
-    for f in path.glob("*/c/**/*.partial"):
-        if f.name.split(".")[0] == str(c) and f.parent.name == str(r):
+    killed while writing tile (r, c) left: readers ignore them, but they would pile up. The chunk key
+    of each array is built from its own dimension names (tile (r, c) is chunk r along ``y`` and
+    ``tile_row``, chunk c along ``x`` and ``tile_col``; other dims are one chunk), so a live writer's
+    files of another tile are never touched."""
+    import zarr
+
+    index = {"y": str(r), "x": str(c), "tile_row": str(r), "tile_col": str(c)}
+    for name, arr in zarr.open_group(path, mode="r").arrays():
+        dims = arr.metadata.dimension_names or ()
+        if not {"y", "x"} <= set(dims) and not {"tile_row", "tile_col"} <= set(dims):
+            continue
+        key = "/".join(index.get(d, "*") for d in dims)
+        for f in path.glob(f"{name}/c/{key}.*.partial"):
             f.unlink(missing_ok=True)
 
 
