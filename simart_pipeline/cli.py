@@ -58,17 +58,12 @@ def _check_parent(out: Path, what: str) -> None:
             return
 
 
-def _scene_problems(scene_dir):
-    # a scene.yaml that cannot be read or decoded is a ConfigError problem line (config.load_scene_config)
+def cmd_validate(args) -> int:
     from simart_pipeline.validation import scene_problems
 
-    return scene_problems(scene_dir)
-
-
-def cmd_validate(args) -> int:
     if not Path(args.scene_dir).is_dir():
         raise CliError(f"{args.scene_dir}: no such directory (give the directory that holds scene.yaml)")
-    cfg, problems = _scene_problems(args.scene_dir)
+    cfg, problems = scene_problems(args.scene_dir)
     if problems:
         print(f"{args.scene_dir}: {len(problems)} problem(s):", file=sys.stderr)
         _print_problems(problems)
@@ -275,13 +270,14 @@ def store_of(asset: str, key, data_root: Path) -> Path:
 
 def cmd_run(args) -> int:
     from simart_pipeline import engine
+    from simart_pipeline.validation import scene_problems
 
     try:
         backend = engine.preflight()
     except engine.PreflightError as exc:
         print(f"preflight: {exc}", file=sys.stderr)
         return 3
-    cfg, problems = _scene_problems(args.scene_dir)
+    cfg, problems = scene_problems(args.scene_dir)
     if problems:
         print(f"{args.scene_dir}: {len(problems)} problem(s); nothing was run:", file=sys.stderr)
         _print_problems(problems)
@@ -366,10 +362,8 @@ def cmd_scene_build(args) -> int:
 def cmd_ckm(args) -> int:
     """Open a scene's channel knowledge map as an xarray dataset: print it, or export it."""
     from simart_pipeline import registry as reg
-    from simart_pipeline.ckm.maps import open_scene_map
-    from simart_pipeline.config import ConfigError, load_scene_config
-
-    from simart_pipeline.ckm.maps import map_groups, map_name_for_weather, map_path
+    from simart_pipeline.ckm.maps import map_groups, map_name_for_weather, map_path, open_scene_map
+    from simart_pipeline.config import load_scene_config
 
     data_root = Path(args.data or reg.default_data_root()).resolve()
     out = Path(args.export) if args.export else None

@@ -392,7 +392,7 @@ def outdoor_fraction(radio, x_m, y_m, heights_m, samples_per_axis: int = OUTDOOR
 
     Not crossing parity: buildings sharing a wall and a building part standing on another one have
     coincident faces, of which a ray steps over all but one, so parity read such points as outdoor
-    (435 of 9,846 Munich cells). Whether anything lies above does not depend on how many faces
+    (255 cells of a 500 m x 500 m Munich grid at 5 m, measured when this changed). Whether anything lies above does not depend on how many faces
     there are nor on their orientation (Sionna's bundled scenes have inward normals), and a
     courtyard, open to the sky, stays outdoor. The radio mesh holds buildings and flat ground
     layers only (scene/meshes.py), so nothing else stands above an outdoor receiver."""

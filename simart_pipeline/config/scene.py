@@ -134,30 +134,24 @@ def load_scene_config(scene_dir: str | Path) -> SceneConfig:
     if cfg.name != scene_dir.resolve().name:
         problems.append(f"{path}: name: {cfg.name!r} differs from the scene directory's name "
                         f"{scene_dir.resolve().name!r}")
-    for i, p in enumerate(cfg.platforms):
-        if p.trajectory.kind == "replay":
-            rec = (scene_dir / p.trajectory.path).resolve()
-            if not rec.is_relative_to(scene_dir.resolve()):
-                problems.append(f"{path}: platforms.{i}.trajectory.path: {p.trajectory.path!r} points "
-                                "outside the scene directory")
-            elif not (rec.is_file() or (rec / "metadata.yaml").is_file()):
-                problems.append(f"{path}: platforms.{i}.trajectory.path: file not found: {rec}"
-                                + (" (a rosbag2 directory needs its metadata.yaml)" if rec.is_dir() else ""))
-    for i, imp in enumerate(cfg.sensor_imports):
-        bag = (scene_dir / imp.path).resolve()
-        if not bag.is_relative_to(scene_dir.resolve()):
-            problems.append(f"{path}: sensor_imports.{i}.path: {imp.path!r} points outside the scene directory")
-        elif not (bag.is_file() or (bag / "metadata.yaml").is_file()):
-            problems.append(f"{path}: sensor_imports.{i}.path: bag not found: {bag}")
+    # Every file the config names: (key, path, what to say when it is missing or None when another
+    # stage checks, may be a rosbag2 directory). One rule for all: it stays inside the scene folder.
+    named = [(f"platforms.{i}.trajectory.path", p.trajectory.path, "file not found", True)
+             for i, p in enumerate(cfg.platforms) if p.trajectory.kind == "replay"]
+    named += [(f"sensor_imports.{i}.path", imp.path, "bag not found", True)
+              for i, imp in enumerate(cfg.sensor_imports)]
     if cfg.source.kind in ("osm", "mesh"):
-        src = resolve_source_path(scene_dir, cfg)
-        if not src.is_relative_to(scene_dir.resolve()):
-            problems.append(f"{path}: source.path: {cfg.source.path!r} points outside the scene directory")
-        elif not src.is_file():
-            problems.append(f"{path}: source.path: file not found: {src}")
-    if cfg.codebook.path is not None and not (scene_dir / cfg.codebook.path).resolve().is_relative_to(
-            scene_dir.resolve()):
-        problems.append(f"{path}: codebook.path: {cfg.codebook.path!r} points outside the scene directory")
+        named.append(("source.path", cfg.source.path, "file not found", False))
+    if cfg.codebook.path is not None:
+        named.append(("codebook.path", cfg.codebook.path, None, False))  # read by `simart validate`
+    root = scene_dir.resolve()
+    for key, rel, missing, bag_dir in named:
+        f = (scene_dir / rel).resolve()
+        if not f.is_relative_to(root):
+            problems.append(f"{path}: {key}: {rel!r} points outside the scene directory")
+        elif missing and not (f.is_file() or (bag_dir and (f / "metadata.yaml").is_file())):
+            problems.append(f"{path}: {key}: {missing}: {f}"
+                            + (" (a rosbag2 directory needs its metadata.yaml)" if bag_dir and f.is_dir() else ""))
     if problems:
         raise ConfigError(problems)
     return cfg

@@ -78,7 +78,7 @@ class ReplayTrajectory(_Model):
         default_factory=lambda: RecordingFrame(),
         description="pose of the frame the recorded poses are given in, in the scene's world frame")
     max_gap_s: float = Field(
-        1.0, gt=0, le=3600, allow_inf_nan=False,
+        1.0, gt=0, le=3600,
         description="a longer interval between recorded poses is refused (raise it to interpolate across)")
     dynamic_limits: Literal["refuse", "warn", "accept"] = Field(
         "refuse", description="replayed speed or acceleration above the platform's limits: refuse the "
