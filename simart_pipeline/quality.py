@@ -290,8 +290,7 @@ def ckm_passive(ds: xr.Dataset, cfg, rows: slice | None = None, cols: slice | No
     sel = {k: v for k, v in (("y", rows), ("x", cols)) if v is not None}
     ds = ds.isel(sel)
     f = cfg.ofdm.carrier_frequency_hz
-    # cells with too few ray hits hold no gain or ToA (maps written before enough_hits: has_path)
-    has = ds["enough_hits" if "enough_hits" in ds else "has_path"].values.astype(bool)  # bs, height, y, x
+    has = ds["enough_hits"].values.astype(bool)  # bs, height, y, x: cells with too few ray hits hold no gain or ToA
     gain = ds["path_gain_db"].values
     count = ds["count"].values.astype(np.float64)
     toa = ds["toa_s"].values
