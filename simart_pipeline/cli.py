@@ -208,7 +208,7 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
     report_config_versions(instance, plan)
     steps = [(["osm_extract", "paired_meshes", "trajectory"], cfg.name)]
     # one trace per weather group (sunny and night share the dry one), then each weather's stages
-    steps += [(["cirs"], dg.MultiPartitionKey({"scene": cfg.name, "weather_group": g}))
+    steps += [(["cirs", "radar_frames"], dg.MultiPartitionKey({"scene": cfg.name, "weather_group": g}))
               for g in dict.fromkeys(WEATHER_GROUP[w] for w in weathers)]
     steps += [(["sensor_frames", "kpis", "session"], dg.MultiPartitionKey({"scene": cfg.name, "weather": w}))
               for w in weathers]

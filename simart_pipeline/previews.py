@@ -101,9 +101,37 @@ def heatmaps(panels: list[tuple[str, np.ndarray, str]], x: np.ndarray, y: np.nda
     return figure_markdown(fig)
 
 
-def image(rgb: np.ndarray, title: str = ""):
+def image(rgb: np.ndarray, title: str = "", boxes=()):
+    """An RGB frame; ``boxes``: (label, (u_min, v_min, u_max, v_max) px) drawn over it."""
+    from matplotlib.patches import Rectangle
+
     fig, ax = plt.subplots(figsize=(4, 3))
     ax.imshow(rgb)
+    for label, (u0, v0, u1, v1) in boxes:
+        ax.add_patch(Rectangle((u0 - 0.5, v0 - 0.5), u1 - u0 + 1, v1 - v0 + 1, fill=False, ec="yellow", lw=1))
+        ax.text(u0, v0 - 2, label, color="yellow", fontsize=6)
     ax.set_axis_off()
+    ax.set_title(title)
+    return figure_markdown(fig)
+
+
+def range_doppler(power_db: np.ndarray, range_m: np.ndarray, velocity_mps: np.ndarray, truth=(),
+                  title: str = "", max_range_m: float | None = None, dynamic_range_db: float = 60.0):
+    """A range-Doppler map [range, velocity] (dB) with the actors' true (range, radial velocity)."""
+    keep = range_m <= (max_range_m if max_range_m is not None else range_m.max())
+    # The velocity span that holds the actors (at least +-30 m/s), not the whole unambiguous one.
+    span = max([30.0] + [2 * abs(v) + 10 for _, _, v in truth])
+    cols = np.abs(velocity_mps) <= span
+    shown = power_db[keep][:, cols]
+    top = float(np.max(shown)) if shown.size else 0.0
+    fig, ax = plt.subplots(figsize=(5, 3.2))
+    im = ax.pcolormesh(velocity_mps[cols], range_m[keep], shown, vmin=top - dynamic_range_db, vmax=top,
+                       shading="nearest", cmap="viridis")
+    fig.colorbar(im, ax=ax, label="power (dB)")
+    for label, r, v in truth:
+        ax.plot(v, r, "r+", ms=8)
+        ax.text(v, r, f" {label}", color="red", fontsize=7)
+    ax.set_xlabel("radial velocity (m/s, + receding)")
+    ax.set_ylabel("range (m)")
     ax.set_title(title)
     return figure_markdown(fig)

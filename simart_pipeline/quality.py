@@ -112,6 +112,9 @@ def stream_rate_hz(group: str, ds: xr.Dataset, cfg, asset: str) -> float | None:
         return cfg.clock.pose_rate_hz
     if kind in ("cirs", "kpis"):
         return cfg.clock.radio_rate_hz
+    if kind == "radar_frames":  # one group per radar base station
+        bs = {b.name: b for b in cfg.base_stations}[group.strip("/")]
+        return bs.radar.rate_hz
     if kind in ("sensor_frames", "sensors"):
         if is_imported(ds):
             return None

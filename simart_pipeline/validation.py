@@ -17,6 +17,7 @@ from simart_pipeline.mobility import replay
 from simart_pipeline.mobility.bags import Bag
 from simart_pipeline.mobility.trajectory import plan_platform
 from simart_pipeline.scene import geometry, source
+from simart_pipeline.scene.actors import scene_actors
 from simart_pipeline.sensing import ros_messages
 from simart_pipeline.sensing.bag_import import MESSAGE_TYPES
 
@@ -58,6 +59,14 @@ def scene_problems(scene_dir: str | Path) -> tuple[SceneConfig | None, list[str]
         else:
             problems += _replay_problems(p, i, scene_dir, geom, where)
     problems += _import_problems(cfg, scene_dir, where)
+    try:  # every body file reads
+        scene_actors(cfg, scene_dir)
+    except ValueError as exc:  # MeshImportError: the message names the file and the problem
+        problems.append(f"{where}: {exc}")
+    for i, a in enumerate(cfg.static_actors):
+        if a.body.mesh != "none" and inside(a.position_m):
+            problems.append(f"{where}: static_actors.{i}.position_m: {a.name} at {list(a.position_m)} "
+                            "is inside a building")
     if cfg.codebook.path is not None:
         try:
             load_codebook(scene_dir / cfg.codebook.path, cfg.base_stations[0].array.num_antennas)

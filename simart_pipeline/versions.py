@@ -46,6 +46,7 @@ STAGES: dict[str, Stage] = {
     "trajectory": Stage(("simart_pipeline.mobility.trajectory", "simart_pipeline.mobility.replay"), "scene"),
     "sensor_frames": Stage(("simart_pipeline.sensing.sensor_frames",), "weather"),
     "cirs": Stage(("simart_pipeline.radio.cirs", "simart_pipeline.radio.tracer"), "weather_group"),
+    "radar_frames": Stage(("simart_pipeline.radio.radar_echoes",), "weather_group"),
     "kpis": Stage(("simart_pipeline.link.kpis", "simart_pipeline.link.beams"), "weather"),
     "ckm_layers": Stage(("simart_pipeline.ckm.layers", "simart_pipeline.ckm.mosaic", "simart_pipeline.ckm.maps",
                          "simart_pipeline.ckm.one_pass"), "tile"),
@@ -53,7 +54,7 @@ STAGES: dict[str, Stage] = {
     "session": Stage((), "weather"),
 }
 ASSET_MODULE = {"osm_extract": "scene", "paired_meshes": "scene", "trajectory": "scene",
-                "sensor_frames": "sensing", "cirs": "radio", "kpis": "link", "ckm_layers": "ckm",
+                "sensor_frames": "sensing", "cirs": "radio", "radar_frames": "radio", "kpis": "link", "ckm_layers": "ckm",
                 "ckm_map": "ckm", "session": "session"}
 
 
@@ -115,12 +116,16 @@ def _without(d: dict, *keys) -> dict:
     return {k: v for k, v in d.items() if k not in keys}
 
 
-def _devices(raw: dict, *, sensors: bool) -> dict:
-    """Base stations and platforms with or without their sensors."""
-    if sensors:
-        return {"base_stations": raw["base_stations"], "platforms": raw["platforms"]}
-    return {"base_stations": [_without(b, "sensors") for b in raw["base_stations"]],
-            "platforms": [_without(p, "sensors") for p in raw["platforms"]]}
+def _devices(raw: dict, *, sensors: bool, actors: bool = True) -> dict:
+    """Base stations and platforms with or without their sensors (and radars), with or without the
+    actors' bodies and the static actors."""
+    drop_b = () if sensors else ("sensors", "radar")
+    drop_p = (() if sensors else ("sensors",)) + (() if actors else ("body",))
+    out = {"base_stations": [_without(b, *drop_b) for b in raw["base_stations"]],
+           "platforms": [_without(p, *drop_p) for p in raw["platforms"]]}
+    if actors:
+        out["static_actors"] = raw["static_actors"]
+    return out
 
 
 def config_slice(cfg: SceneConfig, asset: str, sub: str | None = None) -> dict:
@@ -134,7 +139,7 @@ def config_slice(cfg: SceneConfig, asset: str, sub: str | None = None) -> dict:
         return {"source": raw["source"], "origin": raw["origin"], "materials": dry_materials,
                 "carrier_frequency_hz": raw["ofdm"]["carrier_frequency_hz"]}
     if asset == "trajectory":
-        return {"platforms": [_without(p, "sensors", "array") for p in raw["platforms"]],
+        return {"platforms": [_without(p, "sensors", "array", "body") for p in raw["platforms"]],
                 "clock": {k: clock[k] for k in ("duration_s", "pose_rate_hz")}}
     if asset == "sensor_frames":
         return {**_devices(raw, sensors=True), "sensor_imports": raw["sensor_imports"], "seed": raw["seed"],
@@ -143,10 +148,18 @@ def config_slice(cfg: SceneConfig, asset: str, sub: str | None = None) -> dict:
         return {**_devices(raw, sensors=False), **{k: raw[k] for k in ("ray_tracing", "ofdm")},
                 "materials": dry_materials, "weather_materials": cfg.materials.weather_table()[sub],
                 "clock": {k: clock[k] for k in ("duration_s", "radio_rate_hz")}}
+    if asset == "radar_frames":  # sub: a weather group; a scene without radar reads nothing
+        if not any(b.radar for b in cfg.base_stations):
+            return {"radars": None}
+        return {"base_stations": raw["base_stations"],
+                "platforms": [_without(p, "sensors", "array") for p in raw["platforms"]],
+                "static_actors": raw["static_actors"], **{k: raw[k] for k in ("ray_tracing", "ofdm")},
+                "materials": dry_materials, "weather_materials": cfg.materials.weather_table()[sub],
+                "duration_s": clock["duration_s"]}
     if asset == "kpis":
         return {**{k: raw[k] for k in ("ofdm", "link", "receiver", "codebook", "seed")}, "weather": sub}
-    if asset == "ckm_layers":
-        return {**_devices(raw, sensors=False),
+    if asset == "ckm_layers":  # the map of the static scene: no actor
+        return {**_devices(raw, sensors=False, actors=False),
                 **{k: raw[k] for k in ("ckm", "ray_tracing", "ofdm", "link", "receiver", "codebook",
                                        "materials", "weathers")}, "tile": sub}
     if asset == "ckm_map":
@@ -190,6 +203,8 @@ def source_files(cfg: SceneConfig, asset: str, scene_dir: Path | None) -> dict[s
         names += [p.trajectory.path for p in cfg.platforms if p.trajectory.kind == "replay"]
     if asset == "sensor_frames":
         names += [imp.path for imp in cfg.sensor_imports]
+    if asset in ("sensor_frames", "cirs") or (asset == "radar_frames" and any(b.radar for b in cfg.base_stations)):
+        names += [a.body.mesh for a in (*cfg.platforms, *cfg.static_actors) if a.body.is_file]
     if asset in ("kpis", "ckm_layers") and cfg.codebook.path:
         names.append(cfg.codebook.path)
     return {n: file_digest(Path(scene_dir) / n) for n in sorted(set(names))}
@@ -208,6 +223,8 @@ def upstream(cfg: SceneConfig, asset: str, sub: str | None) -> list[tuple[str, s
         return [("paired_meshes", None), ("trajectory", None)]
     if asset == "cirs":
         return [("paired_meshes", None), ("trajectory", None), ("osm_extract", None)]
+    if asset == "radar_frames":
+        return [("paired_meshes", None), ("trajectory", None)] if any(b.radar for b in cfg.base_stations) else []
     if asset == "kpis":
         return [("cirs", WEATHER_GROUP[sub])]
     if asset == "ckm_layers":

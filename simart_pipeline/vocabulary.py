@@ -51,9 +51,13 @@ class SemanticClass(IntEnum):
     VEGETATION = 4
     WATER = 5
     VEHICLE = 6
-    UAV = 7          # actor bodies (sensing/bodies.py): one instance id per platform
+    UAV = 7          # actor bodies (scene/actors.py): one instance id per actor
     PEDESTRIAN = 8
 
+
+# Instance ids of actors: ACTOR_INSTANCE_ID_BASE + the actor's index (platforms in config order,
+# then static actors). Far above any OSM id (< 2**40), so a map feature and an actor never share one.
+ACTOR_INSTANCE_ID_BASE = 1 << 48
 
 SEMANTIC_CLASS_NAMES: tuple[str, ...] = tuple(c.name.lower() for c in SemanticClass)
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from simart_pipeline.sensing import bodies
+from simart_pipeline.scene import actors as bodies
 from simart_pipeline.vocabulary import RADIO_MATERIALS
 
 

@@ -10,7 +10,8 @@ import pytest
 from simart_pipeline.cli import main
 from simart_pipeline.definitions import defs
 
-EXPECTED = {"osm_extract", "paired_meshes", "trajectory", "sensor_frames", "cirs", "kpis", "ckm_layers", "ckm_map", "session"}
+EXPECTED = {"osm_extract", "paired_meshes", "trajectory", "sensor_frames", "cirs", "radar_frames", "kpis", "ckm_layers",
+            "ckm_map", "session"}
 
 
 def test_definitions_load_with_every_asset_and_partitioning():
@@ -30,7 +31,7 @@ def test_definitions_load_with_every_asset_and_partitioning():
             assert isinstance(pd, dg.MultiPartitionsDefinition)
             dims = {d.name for d in pd.partitions_defs}
             assert dims == ({"scene", "tile"} if name == "ckm_layers" else
-                            {"scene", "weather_group"} if name == "cirs" else {"scene", "weather"})
+                            {"scene", "weather_group"} if name in ("cirs", "radar_frames") else {"scene", "weather"})
     # lineage: session gathers sensors, channels and KPIs; ckm depends on the meshes
     def parents(n):
         return {k.to_user_string() for k in by_name[n].parent_keys} - {f"scene_config/{n}"}

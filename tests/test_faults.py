@@ -385,10 +385,10 @@ def test_a_killed_simart_run_is_completed_by_the_next(tmp_path):
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.extend(p.stdout), daemon=True)
     reader.start()
-    # kill it at a random instant after a random one of the first 8 of its 9 steps starts (the run
+    # kill it at a random instant after a random one of its first 8 steps starts (of 10; the run
     # takes some 15 s here, a step 1-4 s), so that work is left whatever the machine's speed
     rng = random.Random(SEED)
-    step = f"[ {rng.randint(1, 8)}/9]"
+    step = f"[{rng.randint(1, 8):>2}/"
     _wait_for(p, lambda: any(ln.startswith(step) for ln in list(lines)), timeout=120)
     time.sleep(rng.uniform(0.0, 1.0))
     finished_early = p.poll() is not None

@@ -268,8 +268,9 @@ def _road_buffer(geom, min_width):
 
 def _demo_with_car(waypoints, **traj):
     raw = yaml.safe_load((TESTS.parent / "scenes" / "demo" / "scene.yaml").read_text())
-    raw["platforms"].append({"name": "car0", "kind": "ground_vehicle",
-                             "trajectory": {"waypoints_m": waypoints, "speed_mps": 12.0, **traj}})
+    # the demo's own car0 replaced by this one, as the demo's second platform
+    raw["platforms"] = [p for p in raw["platforms"] if p["name"] != "car0"] + [
+        {"name": "car0", "kind": "ground_vehicle", "trajectory": {"waypoints_m": waypoints, "speed_mps": 12.0, **traj}}]
     raw["clock"]["duration_s"] = 60.0
     cfg = SceneConfig.model_validate(raw)
     return cfg, source.build_source_geometry(cfg, TESTS.parent / "scenes" / "demo")

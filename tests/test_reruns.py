@@ -107,10 +107,11 @@ def _computed(lines) -> set[str]:
 def test_an_unchanged_rerun_computes_nothing_and_writes_no_store(reruns):
     _, _, _, steps = reruns
     first, unchanged = steps["first"], steps["unchanged"]
-    assert len(_computed(first[1])) == 3 + 2 + 3 * 3 + len(TILES) + 1  # every partition (cirs: 2 weather groups)
+    # every partition (cirs and radar_frames: 2 weather groups)
+    assert len(_computed(first[1])) == 3 + 2 + 2 + 3 * 3 + len(TILES) + 1
     assert _computed(unchanged[1]) == set()
     assert unchanged[0] == first[0]  # not one file written, not one modification time changed
-    assert any("0 of 17 asset partitions computed, 17 up to date" in line for line in unchanged[1])
+    assert any("0 of 19 asset partitions computed, 19 up to date" in line for line in unchanged[1])
 
 
 def test_a_sensor_rate_edit_rewrites_exactly_the_sensing_stores(reruns):
@@ -150,7 +151,7 @@ def test_a_rain_material_edit_rewrites_exactly_the_rainy_radio_stores(reruns):
 
 def test_force_recomputes_everything(reruns):
     _, _, _, steps = reruns
-    assert len(_computed(steps["forced"][1])) == 17
+    assert len(_computed(steps["forced"][1])) == 19
     rewritten = _rewritten(steps["rain_materials"][0], steps["forced"][0])
     assert {"ckm/tiny/sunny.zarr", "cirs/tiny/sunny.zarr", "osm_extract/tiny.zarr"} <= rewritten
 

@@ -16,7 +16,8 @@ from simart_pipeline.resources import TREE_ASSETS, ProjectResource
 # Store assets and their partitions; every one gets the finite-values, clock and frame-id checks
 # (osm_extract has no time coordinate, so no clock check).
 STORE_ASSETS = {"osm_extract": scene_partitions, "trajectory": scene_partitions,
-                "sensor_frames": scene_weather, "cirs": scene_weather_group, "kpis": scene_weather,
+                "sensor_frames": scene_weather, "cirs": scene_weather_group, "radar_frames": scene_weather_group,
+                "kpis": scene_weather,
                 "session": scene_weather}
 TIMELESS = {"osm_extract"}
 

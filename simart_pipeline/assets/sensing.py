@@ -28,9 +28,16 @@ def sensor_frames(context: dg.AssetExecutionContext, project: ProjectResource,
     tree.attrs.update(provenance.attrs(cfg, "sensor_frames", weather=weather))
     meta = {"streams": ", ".join(node.path for node in tree.subtree if node.has_data) or "none",
             "render_s": round(time.perf_counter() - t0, 2)}
-    for node in tree.subtree:
-        if "rgb" in node.data_vars:
-            meta["preview"] = dg.MetadataValue.md(previews.image(
-                node["rgb"].isel(time=0).values, title=f"{node.path} {weather}"))
-            break
+    cams = [node for node in tree.subtree if "rgb" in node.data_vars]
+    # The camera and frame that see the most actors (the first camera's first frame without any).
+    best = max(((n, i) for n in cams for i in range(n.sizes["time"])),
+               key=lambda c: int((c[0]["actor_pixel_count"].values[c[1]] > 0).sum()), default=None)
+    if best is not None:
+        node, i = best
+        boxes = [(str(name), box) for name, box, n in zip(
+            node["actor"].values, node["actor_visible_box_px"].values[i], node["actor_pixel_count"].values[i]) if n]
+        meta["preview"] = dg.MetadataValue.md(previews.image(
+            node["rgb"].values[i], title=f"{node.path} {weather} t={node['time'].values[i] / 1e9:g} s", boxes=boxes))
+        meta["actor_pixels_per_frame"] = {
+            n.path: int(n["actor_pixel_count"].values.sum() // max(n.sizes["time"], 1)) for n in cams}
     return versioned(context, project, "sensor_frames", tree, meta)

@@ -4,7 +4,9 @@ Every key is declared in this package, one module per concept, with its unit in 
 default and its bounds:
 
 - :mod:`.source`: the world origin and the geometry source (procedural, OSM, user mesh);
-- :mod:`.devices`: antenna arrays, sensors (one shared base), base stations, platforms, limits;
+- :mod:`.devices`: antenna arrays, sensors (one shared base), base stations and their radars,
+  platforms, limits;
+- :mod:`.actors`: bodies of platforms and static actors;
 - :mod:`.trajectories` and :mod:`.recordings`: waypoints or a replayed recording;
 - :mod:`.sensor_imports`: sensor streams imported from bags;
 - :mod:`.radio`: materials, ray tracing, OFDM numerology;
@@ -17,10 +19,11 @@ A wrong key or value is reported with the file's name and the key path
 problem at once.
 """
 
+from simart_pipeline.config.actors import ActorKind, Body, StaticActor
 from simart_pipeline.config.base import ConfigError, Vec2, Vec3
 from simart_pipeline.config.ckm import MAX_TILES_PER_AXIS, Ckm
 from simart_pipeline.config.devices import (DEFAULT_LIMITS, Array, BaseStation, Camera, DynamicLimits, Gps, Imu,
-                                            Lidar, Mount, Platform, Sensor, SensorBase)
+                                            Lidar, Mount, Platform, Radar, Sensor, SensorBase)
 from simart_pipeline.config.link import Codebook, Link, Receiver
 from simart_pipeline.config.radio import DEFAULT_TAG_MATERIALS, Materials, Ofdm, RayTracing
 from simart_pipeline.config.recordings import BAG_TIME_ORIGINS, RECORDING_FORMATS, recording_format
@@ -32,6 +35,7 @@ from simart_pipeline.config.trajectories import (RecordingFrame, ReplayTrajector
                                                  WaypointTrajectory)
 
 __all__ = [
+    "ActorKind", "Body", "Radar", "StaticActor",
     "Array", "BAG_TIME_ORIGINS", "BaseStation", "Camera", "Ckm", "Clock", "Codebook", "ConfigError",
     "DEFAULT_LIMITS", "DEFAULT_TAG_MATERIALS", "DynamicLimits", "Gps", "ImportedStream", "Imu", "Lidar",
     "Link", "MAX_TILES_PER_AXIS", "Materials", "MeshImportRules", "MeshPartRule", "MeshSource", "Mount",

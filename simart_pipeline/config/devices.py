@@ -8,6 +8,7 @@ from typing import Annotated, Literal, Union
 
 from pydantic import Field, field_validator, model_validator
 
+from simart_pipeline.config.actors import ActorKind, Body
 from simart_pipeline.config.base import Vec2, Vec3, _Model, _rate_has_exact_clock
 from simart_pipeline.config.trajectories import TrajectorySource
 from simart_pipeline.vocabulary import STANDARD_GRAVITY_MPS2
@@ -32,6 +33,8 @@ class Mount(_Model):
 
     translation_m: Vec3 = (0.0, 0.0, 0.0)
     rpy_deg: Vec3 = (0.0, 0.0, 0.0)
+    sees_own_body: bool = Field(False, description="the sensor sees its own platform's body "
+                                "(off: a camera under a drone does not film its own arms)")
 
 
 class SensorBase(_Model):
@@ -82,6 +85,24 @@ class Gps(SensorBase):
 Sensor = Annotated[Union[Camera, Lidar, Imu, Gps], Field(discriminator="kind")]
 
 
+class Radar(_Model):
+    """A monostatic OFDM radar at a base station: it transmits the scene's OFDM numerology from the
+    base station's position and listens there (``receive_offset_m`` in the base station's frame
+    moves the receive antenna: 0 is co-located). One frame of ``num_symbols`` OFDM symbols every
+    ``1 / rate_hz`` s on the shared clock; processing: ``sensing/radar.py``, ``docs/actors.md``."""
+
+    rate_hz: float = 2.0
+    num_symbols: int = Field(256, ge=8, le=8192)
+    window: Literal["hann", "rect"] = "hann"
+    diffuse_reflection: bool = Field(
+        True, description="trace diffuse scattering for the echoes (a small or curved body rarely "
+        "has a face normal to the radar: without it most actors return no echo)")
+    array: Array = Field(Array(rows=1, cols=1, pattern="iso"),
+                         description="the radar's transmit and receive array (one antenna by default)")
+    receive_offset_m: Vec3 = (0.0, 0.0, 0.0)
+    _rate = field_validator("rate_hz")(classmethod(lambda cls, v: _rate_has_exact_clock(v)))
+
+
 class BaseStation(_Model):
     name: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$")
     position_m: Vec3
@@ -90,6 +111,7 @@ class BaseStation(_Model):
     array: Array = Array(rows=8, cols=8, pattern="tr38901")
     power_dbm: float = 30.0
     sensors: tuple[Camera, ...] = ()
+    radar: Radar | None = None
 
 
 class DynamicLimits(_Model):
@@ -135,8 +157,9 @@ DEFAULT_LIMITS: dict[str, dict[str, float | None]] = {
 
 class Platform(_Model):
     name: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$")
-    kind: Literal["uav", "ground_vehicle", "pedestrian"]
+    kind: ActorKind
     array: Array = Array()
+    body: Body = Body()
     trajectory: TrajectorySource
     limits: DynamicLimits | None = Field(None, description="overrides of the kind's DEFAULT_LIMITS; "
                                          "always filled in after validation")

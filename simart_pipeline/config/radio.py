@@ -104,6 +104,10 @@ class RayTracing(_Model):
         "solver's working set (about 48 B x depth x samples x receivers, measured) stays below this")
     store_interaction_points: bool = Field(
         False, description="store every path's interaction points (time x link x depth x path x 3)")
+    actor_max_excess_path_m: float | None = Field(
+        200.0, gt=0, description="an actor is left out of a link's trace at an instant when every "
+        "path via its bounding sphere is longer than the direct tx-rx distance by more than this "
+        "(m); None keeps every actor in every trace (docs/actors.md: the rule and its measured error)")
 
 
 class Ofdm(_Model):

@@ -9,6 +9,7 @@ from pathlib import Path
 import yaml
 from pydantic import Field, ValidationError, field_validator, model_validator
 
+from simart_pipeline.config.actors import StaticActor
 from simart_pipeline.config.base import ConfigError, _Model, _rate_has_exact_clock
 from simart_pipeline.config.ckm import Ckm
 from simart_pipeline.config.devices import BaseStation, Platform
@@ -46,6 +47,8 @@ class SceneConfig(_Model):
     ckm: Ckm = Ckm()
     weathers: tuple[WeatherName, ...] = WEATHERS
     seed: int = Field(0, description="seed of every random draw (sensor noise, layouts)")
+    static_actors: tuple[StaticActor, ...] = Field(
+        (), description="parked vehicles, standing people: bodies without a trajectory")
     sensor_imports: tuple[SensorImport, ...] = Field(
         (), description="recorded sensor streams imported from bags in place of the embedded renderer")
 
@@ -70,10 +73,10 @@ class SceneConfig(_Model):
 
     @model_validator(mode="after")
     def _unique_names(self):
-        names = [d.name for d in (*self.base_stations, *self.platforms)]
+        names = [d.name for d in (*self.base_stations, *self.platforms, *self.static_actors)]
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
-            raise ValueError(f"device names must be unique; repeated: {', '.join(dup)}")
+            raise ValueError(f"device and actor names must be unique; repeated: {', '.join(dup)}")
         for dev in (*self.base_stations, *self.platforms):
             sn = [s.name for s in dev.sensors]
             dup = sorted({n for n in sn if sn.count(n) > 1})
@@ -84,6 +87,10 @@ class SceneConfig(_Model):
             if len({d.array for d in devs}) > 1:
                 raise ValueError(f"{group}: every device must use the same array (Sionna RT holds "
                                  "one array per scene for transmitters and one for receivers)")
+        radars = {(b.radar.array, b.radar.diffuse_reflection) for b in self.base_stations if b.radar is not None}
+        if len(radars) > 1:
+            raise ValueError("base_stations: every radar must use the same array and diffuse_reflection "
+                             "(one Sionna RT scene traces them all)")
         if len(set(self.weathers)) != len(self.weathers):
             raise ValueError("weathers: listed twice")
         return self
@@ -96,7 +103,10 @@ class SceneConfig(_Model):
 
 def _loc(loc: tuple) -> str:
     # Drop pydantic's union tags (e.g. 'procedural', 'camera') from the key path.
-    parts = [str(p) for p in loc if not (isinstance(p, str) and p in _UNION_TAGS)]
+    # A tag is followed by the key inside the union's member; a last element is a key itself
+    # (``body.mesh``).
+    parts = [str(p) for i, p in enumerate(loc)
+             if not (isinstance(p, str) and p in _UNION_TAGS and i < len(loc) - 1)]
     return ".".join(parts) or "(top level)"
 
 
@@ -142,6 +152,10 @@ def load_scene_config(scene_dir: str | Path) -> SceneConfig:
               for i, imp in enumerate(cfg.sensor_imports)]
     if cfg.source.kind in ("osm", "mesh"):
         named.append(("source.path", cfg.source.path, "file not found", False))
+    named += [(f"platforms.{i}.body.mesh", p.body.mesh, "file not found", False)
+              for i, p in enumerate(cfg.platforms) if p.body.is_file]
+    named += [(f"static_actors.{i}.body.mesh", a.body.mesh, "file not found", False)
+              for i, a in enumerate(cfg.static_actors) if a.body.is_file]
     if cfg.codebook.path is not None:
         named.append(("codebook.path", cfg.codebook.path, None, False))  # read by `simart validate`
     root = scene_dir.resolve()

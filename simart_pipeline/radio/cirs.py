@@ -20,7 +20,9 @@ from scipy.spatial.transform import Rotation
 from simart_pipeline import clock, frames
 from simart_pipeline.config import SceneConfig
 from simart_pipeline.mobility.trajectory import poses_at
-from simart_pipeline.radio.tracer import INVALID_DELAY_S, RX_NEAR_TX_M, RadioScene, TracedPaths
+from simart_pipeline.radio.tracer import (INVALID_DELAY_S, NO_ACTOR, RX_NEAR_TX_M, RadioScene, TracedPaths,
+                                          merge_traced)
+from simart_pipeline.scene.actors import ActorPoses, actor_poses
 from simart_pipeline.scene.geometry import SourceGeometry, inside_buildings
 from simart_pipeline.vocabulary import AXES, LinkStatus, interaction_flag_attrs, link_status_flag_attrs
 
@@ -70,20 +72,72 @@ def cir_content_sha256(radio: RadioScene, cfg: SceneConfig, lg: LinkGeometry) ->
     h.update(lg.sha256().encode())
     h.update(repr([(b.name, b.power_dbm) for b in cfg.base_stations]).encode())
     h.update(repr([p.name for p in cfg.platforms]).encode())
+    if radio.actors:  # where they are: the trajectory's poses (in lg) and the static actors' own
+        h.update(repr([(p.name, p.body.model_dump()) for p in cfg.platforms]).encode())
+        h.update(repr([a.model_dump() for a in cfg.static_actors]).encode())
+        h.update(repr(cfg.ray_tracing.actor_max_excess_path_m).encode())
     return h.hexdigest()
+
+
+def relevant_actors(radio: RadioScene, poses: ActorPoses, i: int, rx_m: np.ndarray, tx_m: np.ndarray,
+                    own: str | None, max_excess_m: float | None) -> tuple[int, ...]:
+    """Indices of the actors that matter to a receiver at ``rx_m`` at instant ``i``: not the body of
+    its own platform ``own``, and (``max_excess_m`` not None) only those with a path via their
+    bounding sphere at most ``max_excess_m`` longer than the direct distance from some transmitter
+    of ``tx_m`` [B, 3].
+
+    Why not the own body: the antenna sits on it, within a wavelength of its surface (2 cm above a
+    car roof: a quarter wavelength at 3.5 GHz), where ray optics does not hold; that near field is
+    what an antenna pattern measured on its platform describes. Traced, the roof would add a
+    mirror path 4 cm longer than each direct one and hide every ground reflection."""
+    out = []
+    for a, act in enumerate(radio.actors):
+        if act.platform is not None and act.platform == own:
+            continue
+        if max_excess_m is not None:
+            c, r = poses.position_m[a, i], act.bounding_radius_m
+            excess = (np.linalg.norm(tx_m - c, axis=1) + np.linalg.norm(rx_m - c) - 2 * r
+                      - np.linalg.norm(tx_m - rx_m, axis=1))
+            if excess.min() > max_excess_m:
+                continue
+        out.append(a)
+    return tuple(out)
 
 
 def trace_trajectory(radio: RadioScene, cfg: SceneConfig, traj: xr.Dataset,
                      geom: SourceGeometry | None = None) -> xr.Dataset:
-    """Trace every (radio-clock instant, base station, platform) link."""
+    """Trace every (radio-clock instant, base station, platform) link.
+
+    Without actors every receiver goes to the tracer at once. With actors in ``radio``, the
+    receivers of one instant to which the same actors matter (:func:`relevant_actors`: never a
+    platform's own body) share a call with those actors placed at that instant; every receiver to
+    which none matters joins one call of the static scene.
+    """
     lg = link_geometry(cfg, traj)
     T, P = lg.rx_position_m.shape[:2]
     store_points = cfg.ray_tracing.store_interaction_points
-    paths = radio.trace(lg.tx_position_m, lg.tx_orientation_rad, lg.rx_position_m.reshape(-1, 3),
-                        lg.rx_velocity_mps.reshape(-1, 3), lg.rx_orientation_rad.reshape(-1, 3),
-                        with_vertices=store_points)
+    rx_pos, rx_vel = lg.rx_position_m.reshape(-1, 3), lg.rx_velocity_mps.reshape(-1, 3)
+    rx_ori = lg.rx_orientation_rad.reshape(-1, 3)
+    calls: dict[tuple, list[int]] = {}  # (instant, actors shown) or () for the static scene -> receivers
+    poses = actor_poses(radio.actors, traj, lg.time_ns) if radio.actors else None
+    for i in range(T):
+        for j, p in enumerate(cfg.platforms):
+            seen = () if poses is None else relevant_actors(
+                radio, poses, i, lg.rx_position_m[i, j], lg.tx_position_m, p.name,
+                cfg.ray_tracing.actor_max_excess_path_m)
+            calls.setdefault((i, seen) if seen else (), []).append(i * P + j)
+    parts = []
+    for key, idx in sorted(calls.items(), key=lambda kv: kv[1][0]):
+        if radio.actors:
+            radio.place_actors(poses, key[0] if key else 0,
+                               hidden=set(range(len(radio.actors))) - set(key[1] if key else ()))
+        idx = np.asarray(idx)
+        parts.append((idx, radio.trace(lg.tx_position_m, lg.tx_orientation_rad, rx_pos[idx], rx_vel[idx],
+                                       rx_ori[idx], with_vertices=store_points)))
+    paths = merge_traced(parts, T * P)
     ds = cir_dataset(radio, cfg, lg, paths, geom)
     ds.attrs["cir_content_sha256"] = cir_content_sha256(radio, cfg, lg)
+    ds.attrs["trace_calls"] = len(parts)
     return ds
 
 
@@ -174,6 +228,11 @@ def cir_dataset(radio: RadioScene, cfg: SceneConfig, lg: LinkGeometry, paths: Tr
         "rx_ant_position_m": (("rx_ant", "axis"), radio.array_positions_m("rx"),
                               dict(units="m", long_name="antenna positions in the receiver's frame")),
     }
+    if paths.actor is not None:
+        data["interaction_actor"] = (("time", "link", "depth", "path"), per_link(paths.actor), dict(
+            units="1", long_name="index into the actor coordinate of the actor each bounce interacts "
+            "with (its kind: interaction)", fill_value_meaning=f"{NO_ACTOR}: the static scene, or no "
+            "bounce"))
     if paths.vertices_m is not None:
         data["interaction_point_m"] = (("time", "link", "depth", "path", "axis"), per_link(paths.vertices_m), dict(
             units="m", long_name="interaction point of each bounce", frame_id="world",
@@ -187,6 +246,8 @@ def cir_dataset(radio: RadioScene, cfg: SceneConfig, lg: LinkGeometry, paths: Tr
         "depth": np.arange(paths.interaction.shape[2]),
         "axis": AXES,
         "euler": ["yaw", "pitch", "roll"],
+        "actor": ("actor", np.array([a.name for a in radio.actors], dtype=str),
+                  dict(long_name="actors in the radio scene (scene.actors order)")),
     })
     rt = cfg.ray_tracing
     ds.attrs.update(

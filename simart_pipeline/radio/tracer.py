@@ -31,6 +31,7 @@ import numpy as np
 from simart_pipeline import engine
 from simart_pipeline.config import Array, Materials, RayTracing, SceneConfig
 from simart_pipeline.radio import materials
+from simart_pipeline.scene.actors import HIDDEN_POINT_M
 from simart_pipeline.vocabulary import InteractionKind
 
 RX_NEAR_TX_M = 0.01  # Sionna RT silently drops the LoS path of a receiver this close to a transmitter
@@ -41,6 +42,9 @@ SOLVER_BYTES_PER_SAMPLE_BOUNCE_RX = 48  # measured: 100 rx x 1e5 samples: 0.46 /
 # the same primitives (one specular point per primitive chain) cannot be 1 cm apart.
 DUPLICATE_VERTEX_TOLERANCE_M = 0.01
 INVALID_ID = np.uint32(0xFFFFFFFF)
+# Actor parts are thin shells (sheet metal, glass panes, a rotor): their slab thickness (m).
+ACTOR_PART_THICKNESS_M = 0.01
+NO_ACTOR = -1
 
 
 @dataclass
@@ -57,6 +61,8 @@ class TracedPaths:
     interaction: np.ndarray  # [num_rx, num_tx, depth, path] uint8
     valid: np.ndarray        # [num_rx, num_tx, path] bool
     vertices_m: np.ndarray | None = None  # [num_rx, num_tx, depth, path, 3] float32, if asked for
+    actor: np.ndarray | None = None  # [num_rx, num_tx, depth, path] int16: the actor index each
+    #                                  bounce interacts with, NO_ACTOR for the static scene / none
 
     @property
     def los(self) -> np.ndarray:
@@ -122,9 +128,81 @@ class RadioScene:
             if weather not in materials.WEATHER_MATERIALS:
                 raise ValueError(f"unknown weather {weather!r}; known: {', '.join(materials.WEATHER_MATERIALS)}")
             weather_materials = materials.WEATHER_MATERIALS[weather]
+        self.weather_materials = dict(weather_materials)
         self.material_overrides = self._apply_weather(weather, weather_materials)
         self.solvers = {True: rt.PathSolver(deterministic=True), False: rt.PathSolver(deterministic=False)}
         self.cap_retries = 0  # solver calls rerun because their candidates reached the cap
+        self.actors: list = []
+        self._actor_parts: list[tuple[int, object, np.ndarray]] = []  # (actor, SceneObject, body vertices)
+        self._object_actor = np.zeros(0, np.int16)  # Sionna object id -> actor index or NO_ACTOR
+
+    def add_actors(self, actors) -> None:
+        """Put every actor's body in the scene, one SceneObject per body part with the part's radio
+        material (one scene edit); they stay out of every trace until :meth:`place_actors`."""
+        if self.actors:
+            raise RuntimeError("the actors are already in this radio scene")
+        import mitsuba as mi
+        import sionna.rt as rt
+
+        mats: dict[str, object] = {}
+        objs, owners = [], []
+        for a, act in enumerate(actors):
+            for k, mat in enumerate(act.body.part_materials):
+                sel = np.flatnonzero(act.body.face_part == k)
+                if not len(sel):
+                    continue
+                part = act.body.mesh.submesh([sel], append=True)
+                name = f"actor-{act.name}-{k}"
+                mesh = mi.Mesh(name, len(part.vertices), len(part.faces), has_vertex_normals=False,
+                               has_vertex_texcoords=False)
+                params = mi.traverse(mesh)
+                params["vertex_positions"] = mi.Float(np.ascontiguousarray(part.vertices, np.float32).ravel())
+                params["faces"] = mi.UInt32(np.ascontiguousarray(part.faces, np.uint32).ravel())
+                params.update()
+                mat = self.weather_materials.get(mat, mat)  # rain wets actors like everything else
+                s = float(act.scattering_coefficient)
+                if (mat, s) not in mats:
+                    mats[mat, s] = materials.sionna_material(
+                        mat, self.frequency_hz, ACTOR_PART_THICKNESS_M, suffix=f"_actor_s{round(100 * s)}")
+                    mats[mat, s].scattering_coefficient = s
+                objs.append(rt.SceneObject(mi_mesh=mesh, name=name, radio_material=mats[mat, s]))
+                owners.append(a)
+        if not objs:
+            return
+        self.scene.edit(add=objs)
+        params = self.scene.mi_scene_params
+        self.actors = list(actors)
+        self._actor_parts = []
+        for a, obj in zip(owners, objs):
+            # Sionna merges duplicate vertices on construction: read back what the scene holds.
+            v = np.array(params[obj.mi_mesh.id() + ".vertex_positions"], np.float64).reshape(-1, 3)
+            self._actor_parts.append((a, obj, v))
+        ids = {obj.object_id: a for a, obj, _ in self._actor_parts}
+        table = np.full(max(o.object_id for o in self.scene.objects.values()) + 1, NO_ACTOR, np.int16)
+        for oid, a in ids.items():
+            table[oid] = a
+        self._object_actor = table
+        self.place_actors(None, 0, hidden=range(len(self.actors)))
+
+    def place_actors(self, poses, i: int, hidden=()) -> None:
+        """Move every actor to its pose and velocity of instant ``i`` of ``poses``
+        (``scene.actors.ActorPoses``); actors whose indices are in ``hidden`` leave the scene
+        (their triangles collapse to one point, which no ray hits)."""
+        import mitsuba as mi
+
+        params = self.scene.mi_scene_params
+        hidden = set(hidden)
+        for a, obj, v in self._actor_parts:
+            if a in hidden:
+                world, vel = np.broadcast_to(HIDDEN_POINT_M, v.shape), np.zeros(3)
+            else:
+                world = poses.rotation[a][i].apply(v) + poses.position_m[a, i]
+                vel = poses.velocity_mps[a, i]
+            params[obj.mi_mesh.id() + ".vertex_positions"] = mi.Float(
+                np.ascontiguousarray(world, np.float32).ravel())
+            obj.velocity = mi.Vector3f(*[float(x) for x in vel])
+        params.update()
+        self.scene.scene_geometry_updated()
 
     @classmethod
     def from_config(cls, scene_xml: str | Path | None, cfg: SceneConfig, weather: str = "sunny") -> "RadioScene":
@@ -191,6 +269,8 @@ class RadioScene:
             "tx_array": self.tx_array_config.model_dump(),
             "rx_array": self.rx_array_config.model_dump(),
             "solver": self.solver_config.model_dump(exclude={"max_receivers_per_call", "max_solver_memory_gib"}),
+            "actors": [[a, str(obj.radio_material.name), hashlib.sha256(np.ascontiguousarray(v).tobytes()).hexdigest()]
+                       for a, obj, v in self._actor_parts],
             "sionna_rt": sionna.rt.__version__,
         }, sort_keys=True).encode())
         return h.hexdigest()
@@ -235,9 +315,13 @@ class RadioScene:
                 self.scene.remove(f"tx{i}")
             for name in list(self.scene.receivers):
                 self.scene.remove(name)
+        d = _concat(chunks)
+        obj = d["objects"].astype(np.int64)
+        table = np.append(self._object_actor, NO_ACTOR).astype(np.int16)  # last: any other id
+        d["actor"] = table[np.where((obj >= 0) & (obj < len(self._object_actor)), obj, len(table) - 1)]
         # Sorted first so that the path kept of two duplicates is the earlier one, whatever order
         # the solver returned them in.
-        d = drop_duplicate_paths(_ordered(_concat(chunks)))
+        d = drop_duplicate_paths(_ordered(d))
         if not with_vertices:
             d.pop("vertices_m")
         return _sort(d)
@@ -295,6 +379,30 @@ class RadioScene:
         CKM generator's reference mode. ``grid_points_m`` [num_points, 3]."""
         return self.trace(tx_positions, tx_orientations_rad, np.asarray(grid_points_m, np.float64),
                           deterministic=deterministic)
+
+
+def merge_traced(parts: list[tuple[np.ndarray, TracedPaths]], num_rx: int) -> TracedPaths:
+    """One :class:`TracedPaths` of ``num_rx`` receivers from calls that traced receivers
+    ``idx`` each; path slots padded to the largest count with the invalid fill."""
+    if len(parts) == 1 and np.array_equal(parts[0][0], np.arange(num_rx)):
+        return parts[0][1]
+    n = max(p.tau_s.shape[-1] for _, p in parts)
+    out = {}
+    for f in fields(TracedPaths):
+        vals = [getattr(p, f.name) for _, p in parts]
+        if any(v is None for v in vals):
+            out[f.name] = None
+            continue
+        path_axis = vals[0].ndim - 2 if f.name == "vertices_m" else vals[0].ndim - 1
+        first = vals[0]
+        full = np.full((num_rx, *first.shape[1:path_axis], n, *first.shape[path_axis + 1:]),
+                       _FILL.get(f.name, 0), first.dtype)
+        for (idx, _), v in zip(parts, vals):
+            sl = [slice(None)] * v.ndim
+            sl[path_axis] = slice(0, v.shape[path_axis])
+            full[(idx, *sl[1:])] = v
+        out[f.name] = full
+    return TracedPaths(**out)
 
 
 def _count_candidates(solver) -> list[int]:
@@ -377,7 +485,7 @@ def _to_numpy(paths, num_tx: int, num_rx: int, max_depth: int, rx_ant: int,
 
 
 _FILL = {"valid": False, "a": 0, "interaction": 0, "tau_s": INVALID_DELAY_S,
-         "objects": INVALID_ID, "primitives": INVALID_ID}
+         "objects": INVALID_ID, "primitives": INVALID_ID, "actor": NO_ACTOR}
 
 
 def _concat(chunks: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
@@ -414,7 +522,7 @@ def _ordered(d: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     def take(key, v):
         if key == "a":  # [rx, rx_ant, tx, tx_ant, path]
             return np.take_along_axis(v, order[:, None, :, None, :], axis=-1)
-        if key in ("interaction", "objects", "primitives"):  # [rx, tx, depth, path]
+        if key in ("interaction", "objects", "primitives", "actor"):  # [rx, tx, depth, path]
             return np.take_along_axis(v, order[:, :, None, :], axis=-1)
         if key == "vertices_m":  # [rx, tx, depth, path, 3]
             return np.take_along_axis(v, order[:, :, None, :, None], axis=-2)
@@ -427,6 +535,9 @@ def _ordered(d: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         out[k] = np.where(vs, out[k], 0.0).astype(np.float32)
     out["a"] = np.where(vs[:, None, :, None, :], out["a"], 0).astype(np.complex64)
     out["interaction"] = np.where(vs[:, :, None, :], out["interaction"], 0).astype(np.uint8)
+    if "actor" in out:
+        out["actor"] = np.where(vs[:, :, None, :] & (out["interaction"] != 0), out["actor"],
+                                NO_ACTOR).astype(np.int16)
     if "vertices_m" in out:
         out["vertices_m"] = np.where(vs[:, :, None, :, None], out["vertices_m"], 0).astype(np.float32)
     return out

@@ -13,7 +13,7 @@ from simart_pipeline.partitions import split_key
 from simart_pipeline.scene import meshes as scene_meshes
 
 # Assets whose partitions are a tree of groups, or a directory of standard files.
-TREE_ASSETS = {"sensor_frames", "session"}
+TREE_ASSETS = {"sensor_frames", "session", "radar_frames"}
 DIRECTORY_ASSETS = {"paired_meshes"}
 
 
@@ -45,15 +45,25 @@ class RayTracerResource(dg.ConfigurableResource):
     A radio scene is loaded once per process for each (radio mesh file and its modification time,
     scene config, weather): the CKM tiles of one scene share one load."""
 
-    def load(self, paired_meshes: scene_meshes.SceneMeshes, cfg: SceneConfig, weather: str):
+    def load(self, paired_meshes: scene_meshes.SceneMeshes, cfg: SceneConfig, weather: str,
+             actors_from: Path | None = None):
+        """The radio scene of ``cfg`` in ``weather``; with ``actors_from`` (the scene folder) it
+        also holds the scene's actors (``scene.actors``): the CIRs see them, the CKM does not."""
         from simart_pipeline.radio.tracer import RadioScene
+        from simart_pipeline.scene.actors import scene_actors
 
         xml = scene_meshes.radio_scene_file(paired_meshes.root)
-        key = (str(xml.resolve()), xml.stat().st_mtime_ns, cfg.digest(), weather)
+        bodies = () if actors_from is None else tuple(
+            versions.file_digest(Path(actors_from) / a.body.mesh)
+            for a in (*cfg.platforms, *cfg.static_actors) if a.body.is_file)
+        key = (str(xml.resolve()), xml.stat().st_mtime_ns, cfg.digest(), weather, actors_from is not None, bodies)
         if key not in _LOADED:
             if len(_LOADED) >= 4:
                 _LOADED.pop(next(iter(_LOADED)))
-            _LOADED[key] = RadioScene.from_config(xml, cfg, weather)
+            radio = RadioScene.from_config(xml, cfg, weather)
+            if actors_from is not None:
+                radio.add_actors(scene_actors(cfg, actors_from))
+            _LOADED[key] = radio
         return _LOADED[key]
 
     def variant(self) -> str:

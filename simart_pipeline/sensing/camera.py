@@ -25,7 +25,7 @@ from simart_pipeline.config import Camera
 from simart_pipeline.scene.meshes import SceneMeshes
 from simart_pipeline.vocabulary import SemanticClass
 from simart_pipeline.sensing import contract
-from simart_pipeline.sensing.raycast import RayBundle, RayCaster
+from simart_pipeline.sensing.raycast import ActorView, RayBundle, RayCaster
 from simart_pipeline.sensing.weather import WeatherModel
 
 # Linear albedo per semantic class (r, g, b).
@@ -77,16 +77,23 @@ def _mix64(x: np.ndarray) -> np.ndarray:
 
 def face_albedo(meshes: SceneMeshes) -> np.ndarray:
     """[num_faces, 3] linear albedo: the class albedo times a stable per-instance tint."""
+    return albedo_of(meshes.face_class, meshes.face_instance)
+
+
+def albedo_of(face_class: np.ndarray, face_instance: np.ndarray) -> np.ndarray:
+    """[n, 3] linear albedo of faces: class albedo x a stable per-instance brightness, and a
+    per-instance colour tint for buildings and actors (two cars are told apart by colour)."""
     table = np.tile(np.asarray(CLASS_ALBEDO[SemanticClass.UNLABELED]), (256, 1))
     for c, rho in CLASS_ALBEDO.items():
         table[int(c)] = rho
-    base = table[meshes.face_class.astype(np.int64)]
-    h = _mix64(meshes.face_instance)
+    base = table[np.asarray(face_class).astype(np.int64)]
+    h = _mix64(face_instance)
     lum = 0.9 + 0.2 * ((h & np.uint64(0xFFFF)).astype(np.float64) / 0xFFFF)
     tint = np.stack([0.9 + 0.2 * (((h >> np.uint64(s)) & np.uint64(0xFFFF)).astype(np.float64) / 0xFFFF)
                      for s in (16, 32, 48)], axis=-1)
-    building = (meshes.face_class == SemanticClass.BUILDING)[:, None]
-    return base * lum[:, None] * np.where(building, tint, 1.0)
+    tinted = np.isin(face_class, [SemanticClass.BUILDING, SemanticClass.VEHICLE, SemanticClass.UAV,
+                                  SemanticClass.PEDESTRIAN])[:, None]
+    return base * lum[:, None] * np.where(tinted, tint, 1.0)
 
 
 @dataclass(frozen=True)
@@ -148,6 +155,11 @@ class _FrameRenderer:
         self.normals = mi.Float(np.ascontiguousarray(caster.face_normals, np.float32).ravel())
         self.albedo = mi.Float(np.ascontiguousarray(face_albedo(caster.meshes), np.float32).ravel())
         dr.make_opaque(self.normals, self.albedo)
+        if caster.actors is not None:
+            layer = caster.actors
+            self.actor_albedo = mi.Float(np.ascontiguousarray(
+                albedo_of(layer.face_class, layer.face_instance), np.float32).ravel())
+            dr.make_opaque(self.actor_albedo)
         self.lamps = street_lamps(caster.meshes, wx.street_lamp_spacing_m, wx.street_lamp_height_m) \
             if wx.has_street_lamps else None
         if self.lamps is not None:
@@ -161,12 +173,22 @@ class _FrameRenderer:
         vec = lambda v: mi.Vector3f(*[float(x) for x in v])  # noqa: E731 (weather constants)
         o, d = self.bundle.world_rays(position_m, rot)
         do = self.bundle.local  # the rays in the optical frame
-        pi = self.caster.scene.ray_intersect_preliminary(mi.Ray3f(o, d), coherent=True)
-        t = pi.t
+        t, hit_face = self.caster.closest(mi.Ray3f(o, d))
         z = t * do.z  # do.z = cosine between the ray and the optical axis
-        valid = pi.is_valid() & (z <= self.cam.max_depth_m)
-        face = dr.select(valid, pi.prim_index, 0)
-        n = dr.gather(mi.Vector3f, self.normals, face, valid)
+        valid = (hit_face >= 0) & (z <= self.cam.max_depth_m)
+        n_static = self.caster.num_static_faces
+        on_actor = valid & (hit_face >= n_static)
+        on_static = valid & ~on_actor
+        face = mi.UInt32(dr.select(on_static, hit_face, 0))
+        n = dr.gather(mi.Vector3f, self.normals, face, on_static)
+        albedo = dr.gather(mi.Vector3f, self.albedo, face, on_static)
+        if self.caster.actors is not None:
+            layer = self.caster.actors
+            self.actor_normals = mi.Float(np.ascontiguousarray(layer.face_normals, np.float32).ravel())
+            dr.make_opaque(self.actor_normals)
+            k = mi.UInt32(dr.select(on_actor, hit_face - n_static, 0))
+            n = dr.select(on_actor, dr.gather(mi.Vector3f, self.actor_normals, k, on_actor), n)
+            albedo = dr.select(on_actor, dr.gather(mi.Vector3f, self.actor_albedo, k, on_actor), albedo)
         n = dr.select(dr.dot(n, d) > 0, -n, n)  # the side the ray sees
         irr = vec(wx.ambient_rgb)
         p = o + dr.select(valid, t, 0.0) * d
@@ -175,7 +197,7 @@ class _FrameRenderer:
             s = mi.Vector3f(*[float(x) for x in wx.sun_direction_enu()])
             ndots = dr.dot(n, s)
             lit = valid & (ndots > 0)
-            shadow = self.caster.scene.ray_test(mi.Ray3f(p + n * eps, s), active=lit)
+            shadow = self.caster.blocked(mi.Ray3f(p + n * eps, s), lit)
             irr += vec(wx.sun_irradiance_rgb) * dr.select(lit & ~shadow, ndots, 0.0)
         if self.lamps is not None:  # the lamps of the 2 x 2 lattice cells around the point
             lp = self.lamps
@@ -195,7 +217,7 @@ class _FrameRenderer:
                 lit = present & (cos_l > 0)
                 ray = mi.Ray3f(p + n * eps, l_dir)
                 ray.maxt = dr.maximum(r - 2 * eps, 0.0)
-                shadow = self.caster.scene.ray_test(ray, active=lit)
+                shadow = self.caster.blocked(ray, lit)
                 irr += vec(wx.street_lamp_intensity_rgb) * dr.select(lit & ~shadow, cos_l / dr.maximum(r2, 1.0), 0.0)
         if wx.has_lamp:
             c_in = float(np.cos(np.deg2rad(wx.lamp_cone_half_angle_deg)))
@@ -203,7 +225,7 @@ class _FrameRenderer:
             cone = dr.clip((do.z - c_out) / max(c_in - c_out, 1e-9), 0.0, 1.0)
             cos_inc = dr.clip(-dr.dot(n, d), 0.0, 1.0)
             irr += vec(wx.lamp_intensity_rgb) * (cone * cos_inc / dr.square(dr.maximum(t, 0.1)))
-        rad = dr.gather(mi.Vector3f, self.albedo, face, valid) * irr
+        rad = albedo * irr
         fog = dr.exp(-dr.select(valid, t, 0.0) / wx.visibility_m)
         rad = rad * fog + vec(wx.haze_rgb) * (1.0 - fog)
         w = dr.clip(d.z, 0.0, 1.0)
@@ -211,7 +233,7 @@ class _FrameRenderer:
         c = dr.clip(dr.select(valid, rad, sky) * wx.exposure, 0.0, 1.0)
         c = dr.select(c <= 0.0031308, 12.92 * c, 1.055 * dr.power(c, 1 / 2.4) - 0.055)  # sRGB
         z = dr.select(valid, z, dr.inf)
-        fid = dr.select(valid, mi.Int32(pi.prim_index), -1)
+        fid = dr.select(valid, hit_face, -1)
         dr.eval(c, z, fid)
         return (np.array(c, dtype=np.float32).T, np.array(z, dtype=np.float32),
                 np.array(fid, dtype=np.int64))
@@ -237,17 +259,46 @@ def _rain_streaks(img: np.ndarray, wx: WeatherModel, rng: np.random.Generator) -
     img[ys, xs] = (1 - wx.rain_streak_alpha) * img[ys, xs] + wx.rain_streak_alpha * streak
 
 
+def actor_ground_truth(view: ActorView, i: int, inst: np.ndarray, k: np.ndarray, position_m: np.ndarray,
+                       rot: np.ndarray) -> dict[str, np.ndarray]:
+    """Ground truth of every actor in one frame: visible pixel count and box (from the rendered
+    instance image ``inst`` [H, W]), the box of its projected vertices, its distance (m)."""
+    a = len(view.actors)
+    count = np.zeros(a, np.int32)
+    vis_box = np.full((a, 4), np.nan, np.float32)
+    proj_box = np.full((a, 4), np.nan, np.float32)
+    dist = np.zeros(a)
+    for j, act in enumerate(view.actors):
+        vv, uu = np.nonzero(inst == act.instance_id)
+        count[j] = len(uu)
+        if len(uu):
+            vis_box[j] = (uu.min(), vv.min(), uu.max(), vv.max())
+        r = view.poses.rotation[j][i]
+        world = r.apply(act.body.mesh.vertices) + view.poses.position_m[j, i]
+        centre = r.apply(act.body.mesh.bounds.mean(axis=0)) + view.poses.position_m[j, i]
+        dist[j] = np.linalg.norm(centre - position_m)
+        cam = (world - position_m) @ rot  # optical frame (rot: optical into world)
+        if np.all(cam[:, 2] > 1e-6):
+            u = k[0, 0] * cam[:, 0] / cam[:, 2] + k[0, 2]
+            v = k[1, 1] * cam[:, 1] / cam[:, 2] + k[1, 2]
+            proj_box[j] = (u.min(), v.min(), u.max(), v.max())
+    return {"pixel_count": count, "visible_box_px": vis_box, "projected_box_px": proj_box, "distance_m": dist}
+
+
 def render_camera(caster: RayCaster, cam: Camera, times_ns: np.ndarray, position_m: np.ndarray,
-                  rotation: Rotation, wx: WeatherModel, rng: np.random.Generator) -> xr.Dataset:
+                  rotation: Rotation, wx: WeatherModel, rng: np.random.Generator,
+                  actors: ActorView | None = None) -> xr.Dataset:
     """Render every frame of one camera.
 
     :param position_m: [n, 3] optical-frame origin in world at each frame instant.
     :param rotation: n rotations of the optical frame into world.
+    :param actors: the actors at the frame instants (``caster.actors`` holds their layer).
     """
     n_t = len(times_ns)
     h, w = cam.height_px, cam.width_px
     frame = _FrameRenderer(caster, cam, wx)
-    face_class, face_inst = caster.meshes.face_class, caster.meshes.face_instance
+    k = intrinsics(cam)
+    truth = []
     mats = rotation.as_matrix().reshape(n_t, 3, 3)
     position_m = np.asarray(position_m, np.float64).reshape(n_t, 3)
     rgb = np.zeros((n_t, h, w, 3), np.uint8)
@@ -255,12 +306,15 @@ def render_camera(caster: RayCaster, cam: Camera, times_ns: np.ndarray, position
     sem = np.zeros((n_t, h, w), np.uint8)
     inst = np.zeros((n_t, h, w), np.int64)
     for i in range(n_t):  # in time order: the noise draws are the same however frames are split
+        if actors is not None:
+            actors.place(caster.actors, i, position_m[i], cam.max_depth_m)
         disp, z, face = frame.render(position_m[i], mats[i])
         hit = face >= 0
-        fc = np.where(hit, face, 0)
         depth[i] = np.where(hit, z, np.nan).reshape(h, w)
-        sem[i] = np.where(hit, face_class[fc], 0).reshape(h, w)
-        inst[i] = np.where(hit, face_inst[fc], 0).reshape(h, w)
+        cls, ids = caster.face_labels(face)
+        sem[i], inst[i] = cls.reshape(h, w), ids.reshape(h, w)
+        if actors is not None:
+            truth.append(actor_ground_truth(actors, i, inst[i], k, position_m[i], mats[i]))
         img = disp.reshape(h, w, 3)
         _rain_streaks(img, wx, rng)
         dn = img * np.float32(255.0)
@@ -268,8 +322,14 @@ def render_camera(caster: RayCaster, cam: Camera, times_ns: np.ndarray, position
             dn += rng.standard_normal(dn.shape, dtype=np.float32) * np.float32(wx.pixel_noise_std_dn)
         rgb[i] = np.clip(np.rint(dn), 0, 255).astype(np.uint8)
 
+    actor_truth = None
+    if actors is not None:
+        actor_truth = {key: np.stack([f[key] for f in truth]) for key in truth[0]} if truth else {}
+        actor_truth.update(names=[a.name for a in actors.actors],
+                           instance_id=[a.instance_id for a in actors.actors],
+                           semantic_class=[a.semantic_class for a in actors.actors])
     return contract.camera_stream(
-        times_ns, rgb, position_m, rotation.as_quat().reshape(n_t, 4), camera_matrix=intrinsics(cam),
+        times_ns, rgb, position_m, rotation.as_quat().reshape(n_t, 4), camera_matrix=k, actor_truth=actor_truth,
         depth_m=depth, semantic_class=sem, instance_id=inst, max_depth_m=cam.max_depth_m,
         shading_model=SHADING_MODEL, source_encoding="none: rendered",
         model=dict(horizontal_fov_deg=cam.horizontal_fov_deg, projection="pinhole, no lens distortion",

@@ -170,8 +170,12 @@ def camera_stream(times_ns, rgb: np.ndarray, position_m: np.ndarray, orientation
                   distortion_coefficients: np.ndarray | None = None, depth_m: np.ndarray | None = None,
                   semantic_class: np.ndarray | None = None, instance_id: np.ndarray | None = None,
                   max_depth_m: float = float("nan"), shading_model: str = NONE, source_encoding: str = NONE,
-                  header_stamp_ns=None, record_time_ns=None, model: dict | None = None) -> xr.Dataset:
+                  header_stamp_ns=None, record_time_ns=None, model: dict | None = None,
+                  actor_truth: dict | None = None) -> xr.Dataset:
     """A camera stream: ``rgb`` [time, y, x, channel] uint8 and the optical frame's pose per frame.
+
+    ``actor_truth`` (rendered, :func:`actor_truth_variables`): the ground truth of every actor per
+    frame on an ``actor`` dim; without it (imported streams, scenes without actors) the dim is empty.
 
     Rendered (no stamps): ``depth_m`` (NaN: sky), ``semantic_class``, ``instance_id`` and
     ``camera_matrix`` are given; ``distortion_coefficients`` default to five zeros (``plumb_bob``
@@ -241,8 +245,44 @@ def camera_stream(times_ns, rgb: np.ndarray, position_m: np.ndarray, orientation
     )
     for name in ("rgb", "depth_m", "depth_valid", "semantic_class", "instance_id"):
         ds[name].encoding["chunks"] = (1,) + ds[name].shape[1:]
+    ds = ds.assign(actor_truth_variables(n, **(actor_truth or {})))
     attrs = _model_attrs("camera", CAMERA_ATTRS, dict(model or {}, width_px=w, height_px=h, max_depth_m=max_depth_m))
     return _finish(ds, times_ns, header_stamp_ns, record_time_ns, attrs)
+
+
+BOX_CORNERS = ("u_min", "v_min", "u_max", "v_max")
+
+
+def actor_truth_variables(n: int, names=(), instance_id=(), semantic_class=(), pixel_count=None,
+                          visible_box_px=None, projected_box_px=None, distance_m=None) -> dict:
+    """Per frame and actor: visible pixel count, the box of the visible pixels, the projection of
+    the body's vertices, and the distance to the body's bounding-box centre."""
+    a = len(names)
+    nan_box = np.full((n, a, 4), np.nan, np.float32)
+    box = dict(units="px", box_corners="u_min, v_min, u_max, v_max: pixel indices (centres at "
+               "integers), inclusive")
+    return {
+        "actor_pixel_count": (("time", "actor"), np.zeros((n, a), np.int32) if pixel_count is None
+                              else pixel_count, dict(units="1", long_name="pixels whose instance_id is "
+                                                     "the actor's (0: not visible in the frame)")),
+        "actor_visible_box_px": (("time", "actor", "box_corner"), nan_box if visible_box_px is None
+                                 else visible_box_px, dict(long_name="bounding box of the actor's visible "
+                                                           "pixels", nan_means="not visible", **box)),
+        "actor_projected_box_px": (("time", "actor", "box_corner"), nan_box.copy() if projected_box_px is None
+                                   else projected_box_px, dict(
+                                       long_name="bounding box of the projection of the actor's mesh "
+                                       "vertices, occlusion and image borders ignored",
+                                       nan_means="a vertex lies behind the camera", **box)),
+        "actor_distance_m": (("time", "actor"), np.full((n, a), np.nan) if distance_m is None else distance_m,
+                             dict(units="m", long_name="distance from the optical centre to the centre of "
+                                  "the actor body's bounding box")),
+        "actor_instance_id": ("actor", np.asarray(instance_id, np.int64).reshape(a),
+                              dict(units="1", long_name="the actor's instance_id in the images")),
+        "actor_semantic_class": ("actor", np.asarray(semantic_class, np.uint8).reshape(a),
+                                 dict(units="1", long_name="the actor's semantic class", **semantic_flag_attrs())),
+        "actor": ("actor", np.asarray(names, dtype=str).reshape(a), dict(long_name="actor name")),
+        "box_corner": ("box_corner", list(BOX_CORNERS)),
+    }
 
 
 def horizontal_fov_deg(camera_matrix: np.ndarray, width_px: int) -> float:

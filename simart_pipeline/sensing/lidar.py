@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from simart_pipeline.config import Lidar
 from simart_pipeline.sensing import contract
-from simart_pipeline.sensing.raycast import RayBundle, RayCaster
+from simart_pipeline.sensing.raycast import ActorView, RayBundle, RayCaster
 from simart_pipeline.sensing.weather import WeatherModel
 
 
@@ -44,8 +44,10 @@ def beam_directions(lidar: Lidar) -> np.ndarray:
 
 
 def render_lidar(caster: RayCaster, lidar: Lidar, times_ns: np.ndarray, position_m: np.ndarray,
-                 rotation: Rotation, wx: WeatherModel, rng: np.random.Generator) -> xr.Dataset:
-    """Every sweep of one LiDAR; ``position_m`` [n, 3] and ``rotation`` (sensor into world) per sweep."""
+                 rotation: Rotation, wx: WeatherModel, rng: np.random.Generator,
+                 actors: ActorView | None = None) -> xr.Dataset:
+    """Every sweep of one LiDAR; ``position_m`` [n, 3] and ``rotation`` (sensor into world) per sweep;
+    ``actors``: the actors at the sweep instants (``caster.actors`` holds their layer)."""
     n_t = len(times_ns)
     rings, n_az = lidar.channels, lidar.horizontal_samples
     d_s = beam_directions(lidar).reshape(-1, 3)
@@ -56,6 +58,8 @@ def render_lidar(caster: RayCaster, lidar: Lidar, times_ns: np.ndarray, position
     bundle = RayBundle(caster, d_s)
     position_m = np.asarray(position_m, np.float64).reshape(n_t, 3)
     for i in range(n_t):  # in time order: the noise draws are the same however sweeps are split
+        if actors is not None:
+            actors.place(caster.actors, i, position_m[i], lidar.max_range_m)
         t, face = bundle.cast(position_m[i], mats[i])
         t, face = t.reshape(rings, n_az), face.reshape(rings, n_az)
         ret = (face >= 0) & (t <= lidar.max_range_m)
@@ -65,7 +69,7 @@ def render_lidar(caster: RayCaster, lidar: Lidar, times_ns: np.ndarray, position
         if wx.lidar_dropout_probability > 0:
             ret &= rng.random(t.shape, dtype=np.float32) >= np.float32(wx.lidar_dropout_probability)
         rng_m[i] = np.where(ret, np.maximum(r, 0.0), np.nan)
-        sem[i] = np.where(ret, caster.meshes.face_class[np.where(ret, face, 0)], 0)
+        sem[i] = np.where(ret, caster.face_labels(face)[0], 0)
     points = (rng_m[..., None] * d_s.reshape(rings, n_az, 3)[None].astype(np.float32)).astype(np.float32)
     el, az = beam_angles(lidar)
     return contract.lidar_stream(

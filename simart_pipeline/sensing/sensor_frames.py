@@ -24,13 +24,14 @@ import xarray as xr
 
 from simart_pipeline import clock, frames
 from simart_pipeline.config import Camera, Gps, Imu, Lidar, SceneConfig
+from simart_pipeline.scene import actors
 from simart_pipeline.scene.meshes import SceneMeshes
 from simart_pipeline.sensing import camera, contract, inertial, lidar, raycast
 from simart_pipeline.sensing.bag_import import import_streams
 from simart_pipeline.sensing.streams import device_kind, device_poses, mount_rotation, sensor_poses, stream_rng
 from simart_pipeline.sensing.weather import weather_model
 
-SENSING_MODEL_VERSION = 2  # 2: every group holds the whole stream contract of its kind (sensing/contract.py)
+SENSING_MODEL_VERSION = 3  # 3: actors in cameras and LiDARs, actor ground truth per camera frame
 
 
 def build_sensor_frames(meshes, traj: xr.Dataset, cfg: SceneConfig, weather: str,
@@ -47,7 +48,7 @@ def build_sensor_frames(meshes, traj: xr.Dataset, cfg: SceneConfig, weather: str
     rendered_cfg = cfg.model_copy(update={
         "platforms": tuple(p.model_copy(update={"sensors": keep(p)}) for p in cfg.platforms),
         "base_stations": tuple(b.model_copy(update={"sensors": keep(b)}) for b in cfg.base_stations)})
-    tree = render_sensor_frames(meshes, traj, rendered_cfg, weather)
+    tree = render_sensor_frames(meshes, traj, rendered_cfg, weather, scene_dir)
     if not imported:
         return tree
     groups = {node.path: node.to_dataset() for node in tree.subtree if node.has_data}
@@ -59,17 +60,29 @@ def build_sensor_frames(meshes, traj: xr.Dataset, cfg: SceneConfig, weather: str
 
 
 def render_sensor_frames(meshes: SceneMeshes, traj: xr.Dataset, cfg: SceneConfig,
-                         weather: str) -> xr.DataTree:
-    """Render every sensor of ``cfg`` in ``weather``: a tree with a group per ``/<device>/<sensor>``."""
+                         weather: str, scene_dir: str | Path | None = None) -> xr.DataTree:
+    """Render every sensor of ``cfg`` in ``weather``: a tree with a group per ``/<device>/<sensor>``.
+    Cameras and LiDARs see every actor (``scene.actors``) except their own platform's body."""
     wx = weather_model(weather)
     wx_attrs = contract.weather_attrs(weather, applied=True)
     caster: raycast.RayCaster | None = None
+    bodies: list[actors.Actor] | None = None
 
     def get_caster() -> raycast.RayCaster:
-        nonlocal caster
+        nonlocal caster, bodies
         if caster is None:
             caster = raycast.RayCaster(meshes)
+            bodies = actors.scene_actors(cfg, scene_dir)
+            if bodies:
+                caster.actors = raycast.ActorLayer(bodies)
         return caster
+
+    def view(device, sensor, t_ns) -> raycast.ActorView | None:
+        if not bodies:
+            return None
+        own = tuple(a for a, act in enumerate(bodies)
+                    if act.platform == device.name and not sensor.mount.sees_own_body)
+        return raycast.ActorView(bodies, actors.actor_poses(bodies, traj, t_ns), own)
 
     groups: dict[str, xr.Dataset] = {}
     for device in (*cfg.platforms, *cfg.base_stations):
@@ -80,10 +93,11 @@ def render_sensor_frames(meshes: SceneMeshes, traj: xr.Dataset, cfg: SceneConfig
             if isinstance(sensor, Camera):
                 pos_s, rot_s = sensor_poses(pos_b, rot_b, sensor)
                 ds = camera.render_camera(get_caster(), sensor, t_ns, pos_s, rot_s * frames.OPTICAL_TO_BODY,
-                                          wx, rng)
+                                          wx, rng, view(device, sensor, t_ns))
             elif isinstance(sensor, Lidar):
                 pos_s, rot_s = sensor_poses(pos_b, rot_b, sensor)
-                ds = lidar.render_lidar(get_caster(), sensor, t_ns, pos_s, rot_s, wx, rng)
+                ds = lidar.render_lidar(get_caster(), sensor, t_ns, pos_s, rot_s, wx, rng,
+                                        view(device, sensor, t_ns))
             elif isinstance(sensor, Imu):
                 ds = inertial.render_imu(sensor, t_ns, poses, rng)
             elif isinstance(sensor, Gps):
