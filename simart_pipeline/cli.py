@@ -214,6 +214,7 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
               for w in weathers]
     steps += [(["ckm_layers"], dg.MultiPartitionKey({"scene": cfg.name, "tile": t})) for t in tiles]
     steps += [(["ckm_map"], cfg.name)]
+    steps += [(["session_bag"], dg.MultiPartitionKey({"scene": cfg.name, "weather": w})) for w in weathers]
     total = sum(len(s[0]) for s in steps)
     done = computed = 0
     for names, key in steps:
@@ -396,6 +397,48 @@ def cmd_ckm(args) -> int:
     return 0
 
 
+def cmd_export(args) -> int:
+    """Write a materialised (scene, weather) session as one ROS bag."""
+    from simart_pipeline import registry as reg
+    from simart_pipeline import stores as zarr_stores
+    from simart_pipeline.ckm.maps import map_path
+    from simart_pipeline.ckm.mosaic import open_map
+    from simart_pipeline.config import load_scene_config
+    from simart_pipeline.export import bag
+    from simart_pipeline.radio.materials import WEATHER_GROUP
+    from simart_pipeline.scene.actors import scene_actors
+
+    data_root = Path(args.data or reg.default_data_root()).resolve()
+    out = Path(args.out)
+    if args.format == "rosbag1" and out.suffix != ".bag":
+        raise CliError(f"{out}: --out: a ROS 1 bag is one file; give a .bag path")
+    if args.format != "rosbag1" and out.suffix == ".bag":
+        raise CliError(f"{out}: --out: a rosbag2 bag is a directory; give a path without .bag")
+    ours = (out.is_dir() and (out / "metadata.yaml").is_file()) or (out.is_file() and out.suffix == ".bag")
+    if out.exists() and not ours:
+        raise CliError(f"{out}: --out: exists and is not a bag; refusing to replace it")
+    _check_parent(out, "--out")
+    scene_dir = Path(args.scene) if Path(args.scene, "scene.yaml").is_file() else \
+        reg.scene_dir(args.scene, data_root, reg.default_scenes_root())
+    cfg = load_scene_config(scene_dir)
+    weather = args.weather or cfg.weathers[0]
+    if weather not in cfg.weathers:
+        raise CliError(f"{scene_dir / 'scene.yaml'}: --weather: {weather!r} is not one of the scene's weathers "
+                       f"({', '.join(cfg.weathers)})")
+    session_path = zarr_stores.store_path(data_root, "session", cfg.name, weather)
+    if not session_path.exists():
+        raise CliError(f"{session_path}: no session store: run `simart run {scene_dir}` first")
+    group = WEATHER_GROUP[weather]
+    radar_path = zarr_stores.store_path(data_root, "radar_frames", cfg.name, group)
+    ckm_path = map_path(data_root, cfg.name, group)
+    counts = bag.export_session(
+        out, args.format, zarr_stores.open_store(session_path, tree=True), cfg,
+        actors=scene_actors(cfg, scene_dir), ckm=open_map(ckm_path) if ckm_path.exists() else None,
+        ckm_materials=group, radar=zarr_stores.open_store(radar_path, tree=True) if radar_path.exists() else None)
+    print(f"wrote {out} ({args.format}): {sum(counts.values())} messages on {len(counts)} topics")
+    return 0
+
+
 def _check_export_path(out: Path, source: Path) -> None:
     """An export replaces ``out`` whole: refuse where that would destroy something else (a directory
     or file that is not a Zarr store, the map itself or a directory holding it)."""
@@ -477,6 +520,17 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--export", metavar="OUT.zarr", help="write the map (or the chosen layers) to a standalone Zarr store")
     k.add_argument("--data", help="data root (default data/ or $SIMART_DATA)")
     k.set_defaults(func=cmd_ckm)
+    e = sub.add_parser("export", parents=[common], help="write a materialised session as a ROS bag",
+                       description="Write the (SCENE, WEATHER) session (sensors, poses and frames, CIRs, KPIs, beams, "
+                                   "CKM layers, radar frames) as one bag: rosbag2 MCAP (a directory), rosbag2 "
+                                   "SQLite 3 (a directory) or ROS 1 (a .bag file); written aside and renamed into "
+                                   "place. Topics: docs/ros-export.md.")
+    e.add_argument("scene", help="scene name (registered by `simart run`) or scene directory")
+    e.add_argument("--weather", metavar="W", help="default: the scene's first weather")
+    e.add_argument("--format", choices=["mcap", "rosbag2-sqlite3", "rosbag1"], default="mcap")
+    e.add_argument("--out", metavar="PATH", required=True)
+    e.add_argument("--data", help="data root (default data/ or $SIMART_DATA)")
+    e.set_defaults(func=cmd_export)
     f = sub.add_parser("preflight", parents=[common], help="check that Sionna RT can run here (libLLVM >= 17 or CUDA)",
                        description="Report the ray-tracing backend, or what is missing and how to fix it.")
     f.set_defaults(func=cmd_preflight)

@@ -218,6 +218,28 @@ def _replace_atomically(tmp: Path, path: Path, keep_existing: Callable[[Path], b
         shutil.rmtree(old, ignore_errors=True)
 
 
+def write_named(path: Path, fill: Callable[[Path], None]) -> Path:
+    """Create ``path`` (a directory or a file) by calling ``fill(p)`` with a path ``p`` of the same
+    name that does not exist yet (for writers that create it themselves and name what is inside
+    after it, as rosbag2 does), then move it into place atomically; what dead writers left behind is
+    restored or deleted first (:func:`recover`)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    recover(path)
+    tmp = _temp_name(path, "tmp")
+    try:
+        tmp.mkdir()
+        inner = tmp / path.name
+        fill(inner)
+        if inner.is_dir():
+            _replace_atomically(inner, path)
+        else:
+            os.replace(inner, path)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)  # a failed write, or the old version after the exchange
+    return path
+
+
 def write_directory(path: Path, fill: Callable[[Path], None],
                     keep_existing: Callable[[Path], bool] | None = None) -> Path:
     """Create a directory by calling ``fill(tmp_dir)``, then rename it into place atomically;
@@ -240,7 +262,9 @@ def write_directory(path: Path, fill: Callable[[Path], None],
 
 
 def write_store(obj: xr.Dataset | xr.DataTree, path: str | Path) -> Path:
-    """Write a dataset or a tree of datasets as one Zarr v3 store at ``path``, atomically."""
+    """Write a dataset or a tree of datasets as one Zarr v3 store at ``path``, atomically, with
+    consolidated metadata (written once, whole: the consolidated copy cannot go stale), so that
+    ``xr.open_zarr`` / ``xr.open_datatree`` open it in one read and without a warning."""
     path = Path(path)
     check_finite(obj, where=f"{path}: ")
 
@@ -249,9 +273,9 @@ def write_store(obj: xr.Dataset | xr.DataTree, path: str | Path) -> Path:
             warnings.filterwarnings("ignore", message=".*Consolidated metadata.*")
             if isinstance(obj, xr.DataTree):
                 obj.map_over_datasets(_portable_strings).to_zarr(
-                    tmp, mode="w", zarr_format=3, consolidated=False)
+                    tmp, mode="w", zarr_format=3, consolidated=True)
             else:
-                _portable_strings(obj).to_zarr(tmp, mode="w", zarr_format=3, consolidated=False)
+                _portable_strings(obj).to_zarr(tmp, mode="w", zarr_format=3, consolidated=True)
 
     return write_directory(path, fill)
 

@@ -52,10 +52,12 @@ STAGES: dict[str, Stage] = {
                          "simart_pipeline.ckm.one_pass"), "tile"),
     "ckm_map": Stage(("simart_pipeline.ckm.maps", "simart_pipeline.previews"), "scene"),
     "session": Stage((), "weather"),
+    "session_bag": Stage(("simart_pipeline.export.bag", "simart_pipeline.export.pictures"), "weather"),
 }
 ASSET_MODULE = {"osm_extract": "scene", "paired_meshes": "scene", "trajectory": "scene",
                 "sensor_frames": "sensing", "cirs": "radio", "radar_frames": "radio", "kpis": "link", "ckm_layers": "ckm",
-                "ckm_map": "ckm", "session": "session"}
+                "ckm_map": "ckm", "session": "session",
+                "session_bag": "session"}
 
 
 # --- code versions --------------------------------------------------------------------------------
@@ -166,6 +168,12 @@ def config_slice(cfg: SceneConfig, asset: str, sub: str | None = None) -> dict:
         return {"ckm": raw["ckm"], "weathers": raw["weathers"]}
     if asset == "session":
         return {"duration_s": clock["duration_s"], "weather": sub}
+    if asset == "session_bag":  # the frame tree (mounts, base station poses, bodies) and the origin
+        mounts = lambda d: [(s["name"], s["kind"], s["mount"]) for s in d["sensors"]]  # noqa: E731
+        return {"base_stations": [(b["name"], b["position_m"], b["orientation_deg"], mounts(b))
+                                  for b in raw["base_stations"]],
+                "platforms": [(p["name"], p["body"], mounts(p)) for p in raw["platforms"]],
+                "static_actors": raw["static_actors"], "origin": raw["origin"], "weather": sub}
     raise KeyError(f"unknown asset {asset!r}")
 
 
@@ -203,7 +211,8 @@ def source_files(cfg: SceneConfig, asset: str, scene_dir: Path | None) -> dict[s
         names += [p.trajectory.path for p in cfg.platforms if p.trajectory.kind == "replay"]
     if asset == "sensor_frames":
         names += [imp.path for imp in cfg.sensor_imports]
-    if asset in ("sensor_frames", "cirs") or (asset == "radar_frames" and any(b.radar for b in cfg.base_stations)):
+    if asset in ("sensor_frames", "cirs", "session_bag") or (
+            asset == "radar_frames" and any(b.radar for b in cfg.base_stations)):
         names += [a.body.mesh for a in (*cfg.platforms, *cfg.static_actors) if a.body.is_file]
     if asset in ("kpis", "ckm_layers") and cfg.codebook.path:
         names.append(cfg.codebook.path)
@@ -233,6 +242,8 @@ def upstream(cfg: SceneConfig, asset: str, sub: str | None) -> list[tuple[str, s
         return [("osm_extract", None)] + [("ckm_layers", t) for t in scene_tiles(cfg.ckm)]
     if asset == "session":
         return [("trajectory", None), ("sensor_frames", sub), ("cirs", WEATHER_GROUP[sub]), ("kpis", sub)]
+    if asset == "session_bag":  # and the CKM map of its radio materials (VersionPlan.inputs)
+        return [("session", sub), ("radar_frames", WEATHER_GROUP[sub])]
     raise KeyError(f"unknown asset {asset!r}")
 
 
@@ -253,7 +264,9 @@ class VersionPlan:
                 "config": _digest(config_slice(self.cfg, asset, sub)),
                 "source_files": source_files(self.cfg, asset, self.scene_dir),
                 "upstream": {f"{a}[{s}]" if s else a: self.data_version(a, s)
-                             for a, s in upstream(self.cfg, asset, sub)}}
+                             for a, s in upstream(self.cfg, asset, sub)}
+                | ({f"ckm_map[{WEATHER_GROUP[sub]}]": self.map_version(WEATHER_GROUP[sub])}
+                   if asset == "session_bag" else {})}
 
     def config_version(self, asset: str, sub: str | None = None) -> str:
         """Digest of the config slice and the source files of ``(asset, sub)``: the data version of

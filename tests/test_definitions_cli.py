@@ -11,7 +11,7 @@ from simart_pipeline.cli import main
 from simart_pipeline.definitions import defs
 
 EXPECTED = {"osm_extract", "paired_meshes", "trajectory", "sensor_frames", "cirs", "radar_frames", "kpis", "ckm_layers",
-            "ckm_map", "session"}
+            "ckm_map", "session", "session_bag"}
 
 
 def test_definitions_load_with_every_asset_and_partitioning():

@@ -29,7 +29,7 @@ def _all_finite_where_valid(ds: xr.Dataset):
 def test_one_store_per_asset_partition(run):
     data, out, instance, lines, cfg = run
     expected = {"osm_extract": 1, "paired_meshes": 1, "trajectory": 1, "sensor_frames": 3, "cirs": 2, "radar_frames": 2,
-                "kpis": 3, "session": 3, "ckm": 2}
+                "kpis": 3, "session": 3, "ckm": 2, "session_bag": 3}
     assert {k: len(v) for k, v in out.items()} == expected
     assert (data / "paired_meshes" / "tiny" / "radio" / "scene.xml").is_file()
     assert any("materialised" in line for line in lines)

@@ -107,19 +107,21 @@ def _computed(lines) -> set[str]:
 def test_an_unchanged_rerun_computes_nothing_and_writes_no_store(reruns):
     _, _, _, steps = reruns
     first, unchanged = steps["first"], steps["unchanged"]
-    # every partition (cirs and radar_frames: 2 weather groups)
-    assert len(_computed(first[1])) == 3 + 2 + 2 + 3 * 3 + len(TILES) + 1
+    # every partition (cirs and radar_frames: 2 weather groups; session_bag: 3 weathers)
+    assert len(_computed(first[1])) == 3 + 2 + 2 + 3 * 3 + len(TILES) + 1 + 3
     assert _computed(unchanged[1]) == set()
     assert unchanged[0] == first[0]  # not one file written, not one modification time changed
-    assert any("0 of 19 asset partitions computed, 19 up to date" in line for line in unchanged[1])
+    assert any("0 of 22 asset partitions computed, 22 up to date" in line for line in unchanged[1])
 
 
 def test_a_sensor_rate_edit_rewrites_exactly_the_sensing_stores(reruns):
     _, _, _, steps = reruns
     rewritten = _rewritten(steps["unchanged"][0], steps["sensor_rate"][0])
-    assert rewritten == {f"{a}/tiny/{w}.zarr" for a in ("sensor_frames", "session") for w in ("sunny", "night", "rainy")}
-    assert _computed(steps["sensor_rate"][1]) == {f"{a} (tiny|{w})" for a in ("sensor_frames", "session")
-                                                   for w in ("sunny", "rainy", "night")}
+    weathers = ("sunny", "night", "rainy")
+    assert rewritten == ({f"{a}/tiny/{w}.zarr" for a in ("sensor_frames", "session") for w in weathers}
+                         | {f"session_bag/tiny/{w}" for w in weathers})
+    assert _computed(steps["sensor_rate"][1]) == {f"{a} (tiny|{w})" for a in ("sensor_frames", "session", "session_bag")
+                                                   for w in weathers}
     why = [line for line in steps["sensor_rate"][1] if "] sensor_frames (" in line]
     assert len(why) == 3
     assert all("its config changed" in line for line in why)
@@ -134,15 +136,15 @@ def test_dagster_calls_stale_exactly_what_each_edit_concerns(reruns):
     assert set(sensors) == {f"sensor_frames (tiny|{w})" for w in ("sunny", "rainy", "night")}
     assert all("scene_config/sensor_frames" in cause for cause in sensors.values())  # the cause, as the UI says
     rain = steps["rain_materials_stale"]
-    assert set(rain) == {"cirs (tiny|rainy)"} | {f"ckm_layers (tiny|{t})" for t in TILES}
+    assert set(rain) == {"cirs (tiny|rainy)", "radar_frames (tiny|rainy)"} | {f"ckm_layers (tiny|{t})" for t in TILES}
     assert "scene_config/cirs" in rain["cirs (tiny|rainy)"]
 
 
 def test_a_rain_material_edit_rewrites_exactly_the_rainy_radio_stores(reruns):
     _, _, _, steps = reruns
     rewritten = _rewritten(steps["sensor_rate"][0], steps["rain_materials"][0])
-    assert rewritten == {"cirs/tiny/rainy.zarr", "kpis/tiny/rainy.zarr", "session/tiny/rainy.zarr",
-                         "ckm/tiny/rainy.zarr"}
+    assert rewritten == {"cirs/tiny/rainy.zarr", "radar_frames/tiny/rainy.zarr", "kpis/tiny/rainy.zarr",
+                         "session/tiny/rainy.zarr", "ckm/tiny/rainy.zarr", "session_bag/tiny/rainy"}
     computed = _computed(steps["rain_materials"][1])
     assert {"cirs (tiny|rainy)", "kpis (tiny|rainy)", "session (tiny|rainy)"} <= computed
     assert not any("sunny" in c or "night" in c for c in computed)
@@ -151,7 +153,7 @@ def test_a_rain_material_edit_rewrites_exactly_the_rainy_radio_stores(reruns):
 
 def test_force_recomputes_everything(reruns):
     _, _, _, steps = reruns
-    assert len(_computed(steps["forced"][1])) == 19
+    assert len(_computed(steps["forced"][1])) == 22
     rewritten = _rewritten(steps["rain_materials"][0], steps["forced"][0])
     assert {"ckm/tiny/sunny.zarr", "cirs/tiny/sunny.zarr", "osm_extract/tiny.zarr"} <= rewritten
 

@@ -229,8 +229,13 @@ def _lidar(t_ns, stamps, payloads, position_m, rotation) -> xr.Dataset:
             continue
         fill = np.nan if np.issubdtype(base, np.floating) else 0
         fields[name] = _grid([c[name] for c in clouds], shape, fill, base.newbyteorder("="))
+    # a cloud that carries its ranges (as simart's own export does) keeps them as recorded; others
+    # get the norm of x, y, z (which differs from a recorded range by float rounding)
+    recorded = fields.pop("range", None)
+    range_m = np.linalg.norm(points, axis=-1).astype(xyz_dtype) if recorded is None or not \
+        np.issubdtype(recorded.dtype, np.floating) else np.where(valid, recorded, np.nan).astype(xyz_dtype)
     return contract.lidar_stream(
-        t_ns, np.linalg.norm(points, axis=-1).astype(xyz_dtype), points, valid, position_m,
+        t_ns, range_m, points, valid, position_m,
         rotation.as_quat().reshape(len(clouds), 4), point_count=[c.size for c in clouds],
         intensity=fields.pop("intensity", None), fields=fields, **stamps,
         model={"channels": shape[1], "horizontal_samples": shape[2], "point_fields": common,
