@@ -295,12 +295,51 @@ def cmd_run(args) -> int:
     return 0
 
 
+DEV_STOP_GRACE_S = 8.0  # after SIGINT or SIGTERM, what `dagster dev` gets to stop before SIGKILL
+
+
 def cmd_dev(args) -> int:
+    """``dagster dev`` on the project-local instance, stopped cleanly by SIGINT or SIGTERM.
+
+    ``dagster dev`` leaves a SIGTERM to its webserver and daemon children that do not all heed it
+    (it took more than 20 s, then a kill): here either signal becomes one SIGINT to the whole
+    process group (what a terminal's Ctrl-C does, which dagster dev handles), and what is still
+    running after :data:`DEV_STOP_GRACE_S` is killed."""
+    import signal
+
     home = _prepare_dagster_home()
-    print(f"DAGSTER_HOME={home}")
+    print(f"DAGSTER_HOME={home}", flush=True)
     extra = args.dagster_args[1:] if args.dagster_args[:1] == ["--"] else args.dagster_args
     cmd = [sys.executable, "-m", "dagster", "dev", "-m", "simart_pipeline.definitions", *extra]
-    return subprocess.call(cmd, cwd=registry.REPO_ROOT)
+    child = subprocess.Popen(cmd, cwd=registry.REPO_ROOT, start_new_session=True)
+    stopping = []
+
+    def stop(signum, _frame):
+        stopping.append(signum)
+        try:
+            os.killpg(child.pid, signal.SIGINT)
+        except ProcessLookupError:
+            pass
+
+    old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        while child.poll() is None and not stopping:
+            time.sleep(0.2)
+        if stopping:
+            try:
+                child.wait(timeout=DEV_STOP_GRACE_S)
+            except subprocess.TimeoutExpired:
+                pass
+            try:
+                os.killpg(child.pid, signal.SIGKILL)  # whatever of the group is left
+            except ProcessLookupError:
+                pass
+            child.wait()
+            return 128 + stopping[0]
+        return child.returncode
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
 
 
 def cmd_preflight(args) -> int:
