@@ -211,7 +211,7 @@ def _instants(ds: xr.Dataset) -> Iterator[tuple[int, xr.Dataset]]:
             yield start + k, block.isel(time=k)
 
 
-def _static_transforms(cfg: SceneConfig, tree: xr.DataTree, actors) -> Msg:
+def _static_transforms(cfg: SceneConfig, actors) -> Msg:
     from simart_pipeline.sensing.streams import base_station_rotation
 
     tfs = []
@@ -303,7 +303,7 @@ def _camera_stream(path: str, ds: xr.Dataset) -> Iterator[Msg]:
                 dets.append({"name": name, "cls": cls, "cx": (u0 + u1) / 2, "cy": (v0 + v1) / 2,
                              "sx": u1 - u0 + 1, "sy": v1 - v0 + 1, "index": j})
             yield Msg(t, f"{base}/actors", "vision_msgs/msg/Detection2DArray",
-                      {"header": header(t, frame), "detections": dets, "__detections__": True})
+                      {"header": header(t, frame), "detections": dets})
 
 
 def _lidar_stream(path: str, ds: xr.Dataset) -> Iterator[Msg]:
@@ -464,7 +464,7 @@ def session_messages(session: xr.DataTree, cfg: SceneConfig, *, actors=(), ckm: 
                      ckm_materials: str = "", radar: xr.DataTree | None = None) -> Iterator[Msg]:
     """Every message of a session bag, in stamp order (latched ones first)."""
     yield _origin_message(cfg)
-    yield _static_transforms(cfg, session, actors)
+    yield _static_transforms(cfg, actors)
     if ckm is not None:
         yield from _ckm_messages(ckm, ckm_materials)
     traj = session["trajectory"].to_dataset()
@@ -475,7 +475,6 @@ def session_messages(session: xr.DataTree, cfg: SceneConfig, *, actors=(), ckm: 
                 continue
             ds = node.to_dataset()
             path = node.path.split("/sensors/", 1)[1]
-            kind = ds.attrs.get("sensor_kind") or ds.attrs.get("kind")
             if "rgb" in ds:
                 streams.append(_camera_stream(path, ds))
             elif "points_m" in ds:
@@ -485,7 +484,7 @@ def session_messages(session: xr.DataTree, cfg: SceneConfig, *, actors=(), ckm: 
             elif "latitude_deg" in ds:
                 streams.append(_gps_stream(path, ds))
             else:  # pragma: no cover - the stream contract has no other kind
-                raise ValueError(f"sensor group {node.path}: unknown kind {kind!r}")
+                raise ValueError(f"sensor group {node.path}: not a camera, LiDAR, IMU or GPS stream")
     streams.append(_cir_streams(session["cirs"].to_dataset()))
     streams.append(_kpi_streams(session["kpis"].to_dataset()))
     if radar is not None and radar.children:
