@@ -177,6 +177,25 @@ def partition_status(instance, plan, asset: str, key, data_root: Path, paths: li
     return False, versions.why_different(old, plan.inputs(asset, sub))
 
 
+def scene_steps(cfg, weathers, tiles) -> list[tuple[list[str], object]]:
+    """A scene's asset partitions in an order where every upstream comes first: ``[(asset names,
+    partition key)]``, one step a Dagster run of ``simart run``."""
+    import dagster as dg
+
+    from simart_pipeline.radio.materials import WEATHER_GROUP
+
+    steps = [(["osm_extract", "paired_meshes", "trajectory"], cfg.name)]
+    # one trace per weather group (sunny and night share the dry one), then each weather's stages
+    steps += [(["cirs", "radar_frames"], dg.MultiPartitionKey({"scene": cfg.name, "weather_group": g}))
+              for g in dict.fromkeys(WEATHER_GROUP[w] for w in weathers)]
+    steps += [(["sensor_frames", "kpis", "session"], dg.MultiPartitionKey({"scene": cfg.name, "weather": w}))
+              for w in weathers]
+    steps += [(["ckm_layers"], dg.MultiPartitionKey({"scene": cfg.name, "tile": t})) for t in tiles]
+    steps += [(["ckm_map"], cfg.name)]
+    steps += [(["session_bag"], dg.MultiPartitionKey({"scene": cfg.name, "weather": w})) for w in weathers]
+    return steps
+
+
 def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=None, verbose=False,
                       instance=None, progress=print, force: bool = False) -> dict[str, list[Path]]:
     """Register the scene and materialise every asset partition of it that is missing or stale
@@ -189,7 +208,6 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
     from simart_pipeline.assets.versioning import FORCE_TAG
     from simart_pipeline.definitions import build_definitions
     from simart_pipeline.partitions import scene_partitions
-    from simart_pipeline.radio.materials import WEATHER_GROUP
 
     cfg = registry.register(scene_dir, data_root)
     weathers, tiles = _plan(cfg, weathers, tiles)
@@ -206,15 +224,7 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
     t_start = time.perf_counter()
     # Dagster learns the scene's config versions first, so that its own staleness (the UI) agrees.
     report_config_versions(instance, plan)
-    steps = [(["osm_extract", "paired_meshes", "trajectory"], cfg.name)]
-    # one trace per weather group (sunny and night share the dry one), then each weather's stages
-    steps += [(["cirs", "radar_frames"], dg.MultiPartitionKey({"scene": cfg.name, "weather_group": g}))
-              for g in dict.fromkeys(WEATHER_GROUP[w] for w in weathers)]
-    steps += [(["sensor_frames", "kpis", "session"], dg.MultiPartitionKey({"scene": cfg.name, "weather": w}))
-              for w in weathers]
-    steps += [(["ckm_layers"], dg.MultiPartitionKey({"scene": cfg.name, "tile": t})) for t in tiles]
-    steps += [(["ckm_map"], cfg.name)]
-    steps += [(["session_bag"], dg.MultiPartitionKey({"scene": cfg.name, "weather": w})) for w in weathers]
+    steps = scene_steps(cfg, weathers, tiles)
     total = sum(len(s[0]) for s in steps)
     done = computed = 0
     for names, key in steps:

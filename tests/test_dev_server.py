@@ -36,7 +36,8 @@ def _with_env(home: Path) -> list[int]:
 
 def test_simart_dev_serves_and_stops_on_sigterm(tmp_path):
     home, port = tmp_path / "dagster_home", _free_port()
-    env = {**os.environ, "DAGSTER_HOME": str(home), "SIMART_DATA": str(tmp_path / "data")}
+    # automation off: the sensors would start materialising the repository's scenes
+    env = {**os.environ, "DAGSTER_HOME": str(home), "SIMART_DATA": str(tmp_path / "data"), "SIMART_AUTOMATION": "off"}
     p = subprocess.Popen([sys.executable, "-m", "simart_pipeline.cli", "dev", "--", "--host", "127.0.0.1",
                           "--port", str(port)], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
