@@ -93,7 +93,7 @@ def _one_radar(radio: RadioScene, cfg: SceneConfig, traj, bs) -> xr.Dataset:
                                                              "elevation_rad")}
     for a, act in enumerate(radio.actors):
         centre = act.body.mesh.bounds.mean(axis=0)
-        world = np.stack([poses.rotation[a][i].apply(centre) + poses.position_m[a, i] for i in range(n_t)])
+        world = poses.to_world(a, slice(None), centre)  # [frame, 3]
         for k, v in radar.radar_truth(tx, world, poses.velocity_mps[a]).items():
             truth[k][:, a] = v
 

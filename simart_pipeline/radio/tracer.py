@@ -196,7 +196,7 @@ class RadioScene:
             if a in hidden:
                 world, vel = np.broadcast_to(HIDDEN_POINT_M, v.shape), np.zeros(3)
             else:
-                world = poses.rotation[a][i].apply(v) + poses.position_m[a, i]
+                world = poses.to_world(a, i, v)
                 vel = poses.velocity_mps[a, i]
             params[obj.mi_mesh.id() + ".vertex_positions"] = mi.Float(
                 np.ascontiguousarray(world, np.float32).ravel())
@@ -384,25 +384,15 @@ class RadioScene:
 def merge_traced(parts: list[tuple[np.ndarray, TracedPaths]], num_rx: int) -> TracedPaths:
     """One :class:`TracedPaths` of ``num_rx`` receivers from calls that traced receivers
     ``idx`` each; path slots padded to the largest count with the invalid fill."""
-    if len(parts) == 1 and np.array_equal(parts[0][0], np.arange(num_rx)):
+    order = np.concatenate([idx for idx, _ in parts])
+    if not np.array_equal(np.sort(order), np.arange(num_rx)):
+        raise ValueError("merge_traced: the calls must cover every receiver exactly once")
+    if np.array_equal(order, np.arange(num_rx)) and len(parts) == 1:
         return parts[0][1]
-    n = max(p.tau_s.shape[-1] for _, p in parts)
-    out = {}
-    for f in fields(TracedPaths):
-        vals = [getattr(p, f.name) for _, p in parts]
-        if any(v is None for v in vals):
-            out[f.name] = None
-            continue
-        path_axis = vals[0].ndim - 2 if f.name == "vertices_m" else vals[0].ndim - 1
-        first = vals[0]
-        full = np.full((num_rx, *first.shape[1:path_axis], n, *first.shape[path_axis + 1:]),
-                       _FILL.get(f.name, 0), first.dtype)
-        for (idx, _), v in zip(parts, vals):
-            sl = [slice(None)] * v.ndim
-            sl[path_axis] = slice(0, v.shape[path_axis])
-            full[(idx, *sl[1:])] = v
-        out[f.name] = full
-    return TracedPaths(**out)
+    d = _concat([{f.name: getattr(p, f.name) for f in fields(TracedPaths) if getattr(p, f.name) is not None}
+                 for _, p in parts])
+    back = np.argsort(order, kind="stable")  # concatenated rows back into receiver order
+    return TracedPaths(**{k: v[back] for k, v in d.items()})
 
 
 def _count_candidates(solver) -> list[int]:

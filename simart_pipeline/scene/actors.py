@@ -188,10 +188,9 @@ class ActorPoses:
     rotation: list[Rotation]    # A rotations of n each, body into world
     velocity_mps: np.ndarray    # [A, n, 3]
 
-    def world_vertices(self, actors: list[Actor], i: int) -> list[np.ndarray]:
-        """Each actor's vertices in the world at instant ``i``."""
-        return [self.rotation[a][i].apply(act.body.mesh.vertices) + self.position_m[a, i]
-                for a, act in enumerate(actors)]
+    def to_world(self, a: int, i, points_m: np.ndarray) -> np.ndarray:
+        """Points of actor ``a``'s body frame in the world at instant(s) ``i`` (an index or a slice)."""
+        return self.rotation[a][i].apply(points_m) + self.position_m[a, i]
 
 
 def actor_poses(actors: list[Actor], traj: xr.Dataset | None, times_ns: np.ndarray) -> ActorPoses:

@@ -273,9 +273,8 @@ def actor_ground_truth(view: ActorView, i: int, inst: np.ndarray, k: np.ndarray,
         count[j] = len(uu)
         if len(uu):
             vis_box[j] = (uu.min(), vv.min(), uu.max(), vv.max())
-        r = view.poses.rotation[j][i]
-        world = r.apply(act.body.mesh.vertices) + view.poses.position_m[j, i]
-        centre = r.apply(act.body.mesh.bounds.mean(axis=0)) + view.poses.position_m[j, i]
+        world = view.poses.to_world(j, i, act.body.mesh.vertices)
+        centre = view.poses.to_world(j, i, act.body.mesh.bounds.mean(axis=0))
         dist[j] = np.linalg.norm(centre - position_m)
         cam = (world - position_m) @ rot  # optical frame (rot: optical into world)
         if np.all(cam[:, 2] > 1e-6):

@@ -77,29 +77,25 @@ class ActorLayer:
         import mitsuba as mi
 
         self.actors = list(actors)
-        verts, faces, owner, offset = [], [], [], 0
-        for a, act in enumerate(self.actors):
-            verts.append(np.asarray(act.body.mesh.vertices, np.float64))
-            faces.append(np.asarray(act.body.mesh.faces, np.int64) + offset)
-            owner.append(np.full(len(act.body.mesh.faces), a, np.int64))
-            offset += len(act.body.mesh.vertices)
-        self.vertex_actor = np.concatenate([np.full(len(v), a) for a, v in enumerate(verts)])
-        self.face_actor = np.concatenate(owner)
+        meshes = [act.body.mesh for act in self.actors]
+        # the bodies one after another: actor a owns vertices and faces [start[a], start[a + 1])
+        self.vertex_start = np.cumsum([0] + [len(m.vertices) for m in meshes])
+        self.face_start = np.cumsum([0] + [len(m.faces) for m in meshes])
+        self.face_actor = np.repeat(np.arange(len(meshes)), np.diff(self.face_start))
         self.face_class = np.array([self.actors[a].semantic_class for a in self.face_actor], np.uint8)
         self.face_instance = np.array([self.actors[a].instance_id for a in self.face_actor], np.int64)
-        self.body_normals = np.concatenate([np.asarray(act.body.mesh.face_normals) for act in self.actors])
-        self.body_vertices = np.concatenate(verts)
-        self.faces = np.concatenate(faces)
-        mesh = mi.Mesh("actors", len(self.body_vertices), len(self.faces), has_vertex_normals=False,
+        self.body_normals = np.concatenate([np.asarray(m.face_normals) for m in meshes])
+        self.body_vertices = np.concatenate([np.asarray(m.vertices, np.float64) for m in meshes])
+        faces = np.concatenate([np.asarray(m.faces, np.int64) + s for m, s in zip(meshes, self.vertex_start)])
+        mesh = mi.Mesh("actors", len(self.body_vertices), len(faces), has_vertex_normals=False,
                        has_vertex_texcoords=False)
         params = mi.traverse(mesh)
         params["vertex_positions"] = mi.Float(np.full(3 * len(self.body_vertices), 0.0, np.float32))
-        params["faces"] = mi.UInt32(np.ascontiguousarray(self.faces, np.uint32).ravel())
+        params["faces"] = mi.UInt32(np.ascontiguousarray(faces, np.uint32).ravel())
         params.update()
         self.scene = mi.load_dict({"type": "scene", "actors": mesh})
         self.params = mi.traverse(self.scene)
         self.face_normals = np.zeros_like(self.body_normals)
-        self.shown = np.zeros(len(self.actors), bool)
 
     def place(self, poses, i: int, hidden=()) -> None:
         """Put every actor at its pose of instant ``i`` of ``poses`` (:class:`ActorPoses`); the
@@ -108,17 +104,15 @@ class ActorLayer:
 
         world = np.empty_like(self.body_vertices)
         normals = np.empty_like(self.body_normals)
-        self.shown[:] = True
         for a in range(len(self.actors)):
-            v, f = self.vertex_actor == a, self.face_actor == a
+            v = slice(self.vertex_start[a], self.vertex_start[a + 1])
+            f = slice(self.face_start[a], self.face_start[a + 1])
             if a in hidden:
                 world[v] = HIDDEN_POINT_M
                 normals[f] = 0.0
-                self.shown[a] = False
                 continue
-            rot = poses.rotation[a][i]
-            world[v] = rot.apply(self.body_vertices[v]) + poses.position_m[a, i]
-            normals[f] = rot.apply(self.body_normals[f])
+            world[v] = poses.to_world(a, i, self.body_vertices[v])
+            normals[f] = poses.rotation[a][i].apply(self.body_normals[f])
         self.face_normals = normals
         self.params["actors.vertex_positions"] = mi.Float(np.ascontiguousarray(world, np.float32).ravel())
         self.params.update()
