@@ -119,3 +119,25 @@ def test_the_new_scenes_sensor_adds_valid_scenes_and_reports_invalid_ones(tmp_pa
     (scenes / "broken" / "scene.yaml").write_text("name: broken\nclock: {duration_s: 1, bogus: 3}\n")
     edited = new_scenes(dg.build_sensor_context(instance=instance, cursor=context.cursor))
     assert isinstance(edited, dg.SkipReason) and "clock.bogus" in edited.skip_message
+
+
+def test_a_partition_is_in_use_by_its_own_dimension(tmp_path, monkeypatch):
+    """``sunny`` is a weather and a weather group: a scene that lists only night uses the dry group
+    ``sunny`` for its radio, but not the weather ``sunny`` for its sensors."""
+    import shutil
+
+    import yaml
+
+    from simart_pipeline.assets.automation import partition_in_use
+
+    monkeypatch.setenv("SIMART_DATA", str(tmp_path / "data"))
+    scene = tmp_path / "tiny"
+    shutil.copytree(TINY, scene)
+    raw = yaml.safe_load((scene / "scene.yaml").read_text())
+    raw["weathers"] = ["night"]
+    (scene / "scene.yaml").write_text(yaml.safe_dump(raw))
+    registry.register(scene, tmp_path / "data")
+    assert partition_in_use("tiny|sunny", "weather_group") and partition_in_use("tiny|night", "weather")
+    assert not partition_in_use("tiny|sunny", "weather") and not partition_in_use("tiny|rainy", "weather_group")
+    assert partition_in_use("tiny|r0c1", "tile") and not partition_in_use("tiny|r1c0", "tile")
+    assert partition_in_use("tiny", None) and not partition_in_use("elsewhere", None)

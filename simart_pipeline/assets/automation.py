@@ -44,17 +44,18 @@ def scene_config(scene: str) -> SceneConfig | None:
         return None
 
 
-def partition_in_use(partition_key: str) -> bool:
-    """True for a scene partition or a (scene, weather | weather group | tile) partition that the
-    scene's config uses. Multi-partition keys are ``scene|sub`` (dimension names in order)."""
+def partition_in_use(partition_key: str, dimension: str | None) -> bool:
+    """True for a scene partition (``dimension`` None) or a (scene, ``dimension``) partition that
+    the scene's config uses: a weather it lists, the group of one, one of its tiles. Multi-partition
+    keys are ``scene|sub`` (dimension names in order). The dimension matters: ``sunny`` names both a
+    weather and the dry weather group, which a scene listing only ``night`` uses."""
     scene, _, sub = str(partition_key).partition("|")
     cfg = scene_config(scene)
     if cfg is None:
         return False
-    if not sub:
-        return True
-    return (sub in cfg.weathers or sub in {WEATHER_GROUP[w] for w in cfg.weathers}
-            or sub in scene_tiles(cfg.ckm))
+    used = {None: {""}, "weather": set(cfg.weathers), "weather_group": {WEATHER_GROUP[w] for w in cfg.weathers},
+            "tile": set(scene_tiles(cfg.ckm))}[dimension]
+    return sub in used
 
 
 class InSceneConfig(dg.AutomationCondition):
@@ -65,8 +66,11 @@ class InSceneConfig(dg.AutomationCondition):
         return "in_scene_config"
 
     def evaluate(self, context: dg.AutomationContext) -> dg.AutomationResult:
+        pd = context.partitions_def
+        dimension = next((d.name for d in pd.partitions_defs if d.name != "scene"), None) \
+            if isinstance(pd, dg.MultiPartitionsDefinition) else None
         keys = context.candidate_subset.expensively_compute_partition_keys()
-        used = {k for k in keys if partition_in_use(k)}
+        used = {k for k in keys if partition_in_use(k, dimension)}
         return dg.AutomationResult(context, context.candidate_subset.compute_intersection_with_partition_keys(used))
 
 
