@@ -118,3 +118,34 @@ def test_validate_names_a_broken_body_file_and_an_actor_in_a_building(tiny_scene
     _, problems = scene_problems(tiny_scene)
     assert any("platforms.0.body.mesh" in p and "broken.ply" in p for p in problems), problems
     assert any("static_actors.0.position_m" in p and "inside a building" in p for p in problems), problems
+
+
+def test_aircraft_lights_add_their_radiance_to_the_uav_pixels_only(monkeypatch):
+    """Night: the lights of an aircraft actor add ``aircraft_light_radiance_rgb`` (attenuated by the
+    haze over the pixel's distance) to the linear value of its pixels, and nothing elsewhere."""
+    import dataclasses
+
+    from simart_pipeline.sensing import weather
+
+    cfg = config(bs_sensors=[BS_CAM])
+    traj = build_trajectory(cfg)
+    quiet = dataclasses.replace(weather.NIGHT, pixel_noise_std_dn=0.0)
+    frames = {}
+    for lit in (True, False):
+        wx = quiet if lit else dataclasses.replace(quiet, aircraft_light_radiance_rgb=(0.0, 0.0, 0.0))
+        monkeypatch.setitem(weather.WEATHER_MODELS, "night", wx)
+        frames[lit] = render_sensor_frames(scene_of(GROUND), traj, cfg, "night")["bs0/cam"].to_dataset()
+    assert max(quiet.aircraft_light_radiance_rgb) > 0
+    uav = frames[True]["semantic_class"].values == SemanticClass.UAV
+    assert uav.sum() > 20
+    lit, dark = (frames[k]["rgb"].values for k in (True, False))
+    np.testing.assert_array_equal(lit[~uav], dark[~uav])
+
+    def linear(dn):  # inverse sRGB of 8-bit values
+        c = dn.astype(float) / 255.0
+        return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+    fog = np.exp(-frames[True]["depth_m"].values[uav] / quiet.visibility_m)[:, None]
+    expected = linear(dark[uav]) + np.asarray(quiet.aircraft_light_radiance_rgb) * fog * quiet.exposure
+    # One 8-bit step of sRGB at these levels is < 0.004 in linear units.
+    np.testing.assert_allclose(linear(lit[uav]), np.minimum(expected, 1.0), atol=0.004)

@@ -42,7 +42,7 @@ CLASS_ALBEDO = {
 }
 SHADING_MODEL = ("Lambert: per-class albedo (per-instance tint) x (ambient + sun with ray-cast shadows "
                  "+ camera lamp cone, inverse square + street lamps over the roads, inverse square, "
-                 "ray-cast shadows), distance haze, fixed exposure, sRGB 8-bit, "
+                 "ray-cast shadows) + the lights of aircraft actors (emitted), distance haze, fixed exposure, sRGB 8-bit, "
                  "rain streaks and Gaussian pixel noise after tone mapping")
 
 
@@ -159,7 +159,10 @@ class _FrameRenderer:
             layer = caster.actors
             self.actor_albedo = mi.Float(np.ascontiguousarray(
                 albedo_of(layer.face_class, layer.face_instance), np.float32).ravel())
-            dr.make_opaque(self.actor_albedo)
+            lights = (np.asarray(layer.face_class) == SemanticClass.UAV)[:, None] \
+                * np.asarray(wx.aircraft_light_radiance_rgb, np.float32)[None, :]
+            self.actor_emission = mi.Float(np.ascontiguousarray(lights, np.float32).ravel())
+            dr.make_opaque(self.actor_emission)
         self.lamps = street_lamps(caster.meshes, wx.street_lamp_spacing_m, wx.street_lamp_height_m) \
             if wx.has_street_lamps else None
         if self.lamps is not None:
@@ -186,9 +189,9 @@ class _FrameRenderer:
             layer = self.caster.actors
             self.actor_normals = mi.Float(np.ascontiguousarray(layer.face_normals, np.float32).ravel())
             dr.make_opaque(self.actor_normals)
-            k = mi.UInt32(dr.select(on_actor, hit_face - n_static, 0))
-            n = dr.select(on_actor, dr.gather(mi.Vector3f, self.actor_normals, k, on_actor), n)
-            albedo = dr.select(on_actor, dr.gather(mi.Vector3f, self.actor_albedo, k, on_actor), albedo)
+            actor_face = mi.UInt32(dr.select(on_actor, hit_face - n_static, 0))
+            n = dr.select(on_actor, dr.gather(mi.Vector3f, self.actor_normals, actor_face, on_actor), n)
+            albedo = dr.select(on_actor, dr.gather(mi.Vector3f, self.actor_albedo, actor_face, on_actor), albedo)
         n = dr.select(dr.dot(n, d) > 0, -n, n)  # the side the ray sees
         irr = vec(wx.ambient_rgb)
         p = o + dr.select(valid, t, 0.0) * d
@@ -226,6 +229,8 @@ class _FrameRenderer:
             cos_inc = dr.clip(-dr.dot(n, d), 0.0, 1.0)
             irr += vec(wx.lamp_intensity_rgb) * (cone * cos_inc / dr.square(dr.maximum(t, 0.1)))
         rad = albedo * irr
+        if self.caster.actors is not None and max(wx.aircraft_light_radiance_rgb) > 0:
+            rad += dr.gather(mi.Vector3f, self.actor_emission, actor_face, on_actor)
         fog = dr.exp(-dr.select(valid, t, 0.0) / wx.visibility_m)
         rad = rad * fog + vec(wx.haze_rgb) * (1.0 - fog)
         w = dr.clip(d.z, 0.0, 1.0)

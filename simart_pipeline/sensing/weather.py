@@ -13,6 +13,7 @@ Per pixel that hits a surface (Lambert shading, flat face normals):
                   + sun_irradiance_rgb * max(0, n . s) * unshadowed          (sun, with ray-cast shadows)
                   + lamp_intensity_rgb * cone(theta) * max(0, -n . d) / r**2   (lamp at the camera)
                   + sum_k street_lamp_intensity_rgb * max(0, n . l_k) / max(r_k, 1 m)**2 * unshadowed_k)
+                  + aircraft_light_radiance_rgb   (faces of uav actors only: their lights)
     L = L * exp(-r / visibility_m) + haze_rgb * (1 - exp(-r / visibility_m))   (distance haze)
 
 with ``s`` the unit vector towards the sun (``sun_azimuth_deg`` clockwise from north,
@@ -84,6 +85,10 @@ class WeatherModel:
     # LiDAR.
     lidar_dropout_probability: float
     lidar_range_noise_factor: float
+    # Lights carried by aircraft actors (class uav): a relative linear radiance added to their faces,
+    # before haze. Night flight requires lit aircraft (anti-collision lights visible for 3 statute
+    # miles under 14 CFR 107.29; navigation lights in EASA's rules), so a UAV at night is a lit spot.
+    aircraft_light_radiance_rgb: RGB = (0.0, 0.0, 0.0)
 
     def sun_direction_enu(self) -> np.ndarray:
         """Unit vector from a surface towards the sun in the ENU world frame."""
@@ -145,7 +150,7 @@ RAINY = WeatherModel(
 NIGHT = WeatherModel(
     name="night",
     description="night: no sun, faint ambient, warm street lamps every 30 m over the roads (with "
-                "shadows), a lamp cone from the camera (headlight), strong pixel noise",
+                "shadows), a lamp cone from the camera (headlight), lit aircraft, strong pixel noise",
     sun_azimuth_deg=135.0, sun_elevation_deg=-30.0,
     sun_irradiance_rgb=(0.0, 0.0, 0.0), ambient_rgb=(0.012, 0.014, 0.022),
     sky_zenith_rgb=(0.002, 0.003, 0.008), sky_horizon_rgb=(0.010, 0.010, 0.016),
@@ -156,6 +161,7 @@ NIGHT = WeatherModel(
     rain_streaks_per_mpx=0.0, rain_streak_length_frac=0.08, rain_streak_slant_deg=12.0,
     rain_streak_alpha=0.0, rain_streak_rgb=(0.8, 0.8, 0.85),
     lidar_dropout_probability=0.0, lidar_range_noise_factor=1.0,
+    aircraft_light_radiance_rgb=(0.35, 0.30, 0.30),
 )
 
 WEATHER_MODELS: dict[str, WeatherModel] = {w.name: w for w in (SUNNY, RAINY, NIGHT)}
