@@ -193,6 +193,8 @@ def scene_steps(cfg, weathers, tiles) -> list[tuple[list[str], object]]:
     steps += [(["ckm_layers"], dg.MultiPartitionKey({"scene": cfg.name, "tile": t})) for t in tiles]
     steps += [(["ckm_map"], cfg.name)]
     steps += [(["session_bag"], dg.MultiPartitionKey({"scene": cfg.name, "weather": w})) for w in weathers]
+    if cfg.beam_study is not None and set(weathers) == set(cfg.weathers):  # the study reads every weather
+        steps += [(["beam_prediction"], cfg.name)]
     return steps
 
 

@@ -53,11 +53,12 @@ STAGES: dict[str, Stage] = {
     "ckm_map": Stage(("simart_pipeline.ckm.maps", "simart_pipeline.previews"), "scene"),
     "session": Stage((), "weather"),
     "session_bag": Stage(("simart_pipeline.export.bag", "simart_pipeline.export.pictures"), "weather"),
+    "beam_prediction": Stage(("simart_pipeline.study.beam_prediction",), "scene"),
 }
 ASSET_MODULE = {"osm_extract": "scene", "paired_meshes": "scene", "trajectory": "scene",
                 "sensor_frames": "sensing", "cirs": "radio", "radar_frames": "radio", "kpis": "link", "ckm_layers": "ckm",
                 "ckm_map": "ckm", "session": "session",
-                "session_bag": "session"}
+                "session_bag": "session", "beam_prediction": "study"}
 
 
 # --- code versions --------------------------------------------------------------------------------
@@ -174,6 +175,8 @@ def config_slice(cfg: SceneConfig, asset: str, sub: str | None = None) -> dict:
                                   for b in raw["base_stations"]],
                 "platforms": [(p["name"], p["body"], mounts(p)) for p in raw["platforms"]],
                 "static_actors": raw["static_actors"], "origin": raw["origin"], "weather": sub}
+    if asset == "beam_prediction":  # a scene without a study reads nothing
+        return {"beam_study": raw["beam_study"], "weathers": raw["weathers"] if raw["beam_study"] else None}
     raise KeyError(f"unknown asset {asset!r}")
 
 
@@ -244,6 +247,10 @@ def upstream(cfg: SceneConfig, asset: str, sub: str | None) -> list[tuple[str, s
         return [("trajectory", None), ("sensor_frames", sub), ("cirs", WEATHER_GROUP[sub]), ("kpis", sub)]
     if asset == "session_bag":  # and the CKM map of its radio materials (VersionPlan.inputs)
         return [("session", sub), ("radar_frames", WEATHER_GROUP[sub])]
+    if asset == "beam_prediction":
+        if cfg.beam_study is None:
+            return []
+        return [("trajectory", None)] + [(a, w) for w in cfg.weathers for a in ("sensor_frames", "kpis")]
     raise KeyError(f"unknown asset {asset!r}")
 
 

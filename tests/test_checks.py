@@ -60,7 +60,8 @@ def test_every_check_of_the_tiny_scene_ran_and_passed(tiny_run):
     assert "sunny_empty_fraction" in tile.metadata
     blocking = {k.name: s.blocking for c in ALL_CHECKS for k, s in zip(c.check_keys, c.check_specs)}
     assert blocking == {"finite_values": True, "known_frame_ids": True, "on_shared_clock": True,
-                        "passive_channel": True, "ckm_passive": True, "ckm_tile_complete": False}
+                        "passive_channel": True, "ckm_passive": True, "ckm_tile_complete": False,
+                        "beam_study_sound": False}
 
 
 def test_definitions_carry_the_checks():
@@ -69,10 +70,10 @@ def test_definitions_carry_the_checks():
     keys = defs.resolve_asset_graph().asset_check_keys
     assert dg.AssetCheckKey(dg.AssetKey("cirs"), "passive_channel") in keys
     assert dg.AssetCheckKey(dg.AssetKey("radar_frames"), "on_shared_clock") in keys
-    # three store checks per store asset (no clock check where there is no time), three others
+    # three store checks per store asset (no clock check where there is no time), four others
     from simart_pipeline.assets.checks import STORE_ASSETS, TIMELESS
 
-    assert len(keys) == sum(len(list(c.check_keys)) for c in ALL_CHECKS) == 3 * len(STORE_ASSETS) - len(TIMELESS) + 3
+    assert len(keys) == sum(len(list(c.check_keys)) for c in ALL_CHECKS) == 3 * len(STORE_ASSETS) - len(TIMELESS) + 4
 
 
 def test_a_failed_blocking_check_stops_the_downstream_asset(tiny_run, tmp_path, monkeypatch):

@@ -11,7 +11,7 @@ from simart_pipeline.cli import main
 from simart_pipeline.definitions import defs
 
 EXPECTED = {"osm_extract", "paired_meshes", "trajectory", "sensor_frames", "cirs", "radar_frames", "kpis", "ckm_layers",
-            "ckm_map", "session", "session_bag"}
+            "ckm_map", "session", "session_bag", "beam_prediction"}
 
 
 def test_definitions_load_with_every_asset_and_partitioning():
@@ -19,7 +19,7 @@ def test_definitions_load_with_every_asset_and_partitioning():
     keys = {k.to_user_string() for k in graph.get_all_asset_keys()}
     assert keys == EXPECTED | {f"scene_config/{n}" for n in EXPECTED}  # each stage's part of scene.yaml
     by_name = {k.to_user_string(): graph.get(k) for k in graph.get_all_asset_keys()}
-    scene_only = {"osm_extract", "paired_meshes", "trajectory", "ckm_map"}
+    scene_only = {"osm_extract", "paired_meshes", "trajectory", "ckm_map", "beam_prediction"}
     for name, node in by_name.items():
         if name.startswith("scene_config/"):  # partitioned like the stage that reads it
             assert node.partitions_def == by_name[name.split("/")[1]].partitions_def
@@ -42,6 +42,7 @@ def test_definitions_load_with_every_asset_and_partitioning():
     assert parents("ckm_layers") == {"paired_meshes", "osm_extract"}
     assert parents("kpis") == {"cirs"}
     assert parents("ckm_map") == {"ckm_layers", "osm_extract"}
+    assert parents("beam_prediction") == {"trajectory", "sensor_frames", "kpis"}
 
 
 def test_dagster_definitions_validate(tmp_path):

@@ -44,14 +44,14 @@ def scene_config(scene: str) -> SceneConfig | None:
         return None
 
 
-def partition_in_use(partition_key: str, dimension: str | None) -> bool:
+def partition_in_use(partition_key: str, dimension: str | None, asset: str | None = None) -> bool:
     """True for a scene partition (``dimension`` None) or a (scene, ``dimension``) partition that
     the scene's config uses: a weather it lists, the group of one, one of its tiles. Multi-partition
     keys are ``scene|sub`` (dimension names in order). The dimension matters: ``sunny`` names both a
     weather and the dry weather group, which a scene listing only ``night`` uses."""
     scene, _, sub = str(partition_key).partition("|")
     cfg = scene_config(scene)
-    if cfg is None:
+    if cfg is None or (asset == "beam_prediction" and cfg.beam_study is None):  # only scenes with a study
         return False
     used = {None: {""}, "weather": set(cfg.weathers), "weather_group": {WEATHER_GROUP[w] for w in cfg.weathers},
             "tile": set(scene_tiles(cfg.ckm))}[dimension]
@@ -70,7 +70,7 @@ class InSceneConfig(dg.AutomationCondition):
         dimension = next((d.name for d in pd.partitions_defs if d.name != "scene"), None) \
             if isinstance(pd, dg.MultiPartitionsDefinition) else None
         keys = context.candidate_subset.expensively_compute_partition_keys()
-        used = {k for k in keys if partition_in_use(k, dimension)}
+        used = {k for k in keys if partition_in_use(k, dimension, context.key.to_user_string())}
         return dg.AutomationResult(context, context.candidate_subset.compute_intersection_with_partition_keys(used))
 
 

@@ -119,5 +119,27 @@ def ckm_passive(context: dg.AssetCheckExecutionContext, project: ProjectResource
                                           "passive", meta))
 
 
+@dg.asset_check(asset="beam_prediction", partitions_def=scene_partitions,
+                description="The study is sound: no flight in both the training and the test set and "
+                            "every flight in one, top-1 <= top-3 <= top-5 in every row, detections + "
+                            "misses = frames with the UAV visible.")
+def beam_study_sound(context: dg.AssetCheckExecutionContext, project: ProjectResource) -> dg.AssetCheckResult:
+    import json
+
+    from simart_pipeline.study.beam_prediction import study_problems
+
+    scene = context.partition_key
+    cfg = project.config(scene)
+    if cfg.beam_study is None:
+        return dg.AssetCheckResult(passed=True, description=f"{scene} has no beam study")
+    out = stores.store_path(project.data_root, "beam_prediction", scene, suffix="")
+    results = json.loads((out / "results.json").read_text())
+    platform = next(p for p in cfg.platforms if p.name == cfg.beam_study.platform)
+    problems = study_problems(results, len(platform.trajectory.waypoints_m) - 1)
+    return _result(quality.CheckResult.of(problems, f"{len(results['train_flights'])} training and "
+                                          f"{len(results['test_flights'])} test flights, disjoint",
+                                          {"path": str(out)}))
+
+
 STORE_CHECKS = [c for asset, pd in STORE_ASSETS.items() for c in _store_checks(asset, pd)]
-ALL_CHECKS = [*STORE_CHECKS, passive_channel, ckm_tile_complete, ckm_passive]
+ALL_CHECKS = [*STORE_CHECKS, passive_channel, ckm_tile_complete, ckm_passive, beam_study_sound]

@@ -17,6 +17,7 @@ from simart_pipeline.config.link import Codebook, Link, Receiver
 from simart_pipeline.config.radio import Materials, Ofdm, RayTracing
 from simart_pipeline.config.sensor_imports import SensorImport
 from simart_pipeline.config.source import Source, WorldOrigin
+from simart_pipeline.config.study import BeamStudy
 from simart_pipeline.vocabulary import WEATHERS, WeatherName
 
 
@@ -51,6 +52,27 @@ class SceneConfig(_Model):
         (), description="parked vehicles, standing people: bodies without a trajectory")
     sensor_imports: tuple[SensorImport, ...] = Field(
         (), description="recorded sensor streams imported from bags in place of the embedded renderer")
+    beam_study: BeamStudy | None = Field(None, description="the beam-prediction case study (docs/beam-study.md)")
+
+    @model_validator(mode="after")
+    def _study_devices(self):
+        st = self.beam_study
+        if st is None:
+            return self
+        bs = next((b for b in self.base_stations if b.name == st.base_station), None)
+        if bs is None:
+            raise ValueError(f"beam_study.base_station: no base station named {st.base_station!r}")
+        if not any(c.name == st.camera for c in bs.sensors):
+            raise ValueError(f"beam_study.camera: base station {bs.name} has no camera named {st.camera!r}")
+        p = next((q for q in self.platforms if q.name == st.platform), None)
+        if p is None:
+            raise ValueError(f"beam_study.platform: no platform named {st.platform!r}")
+        if p.trajectory.kind != "waypoints" or len(p.trajectory.waypoints_m) < 3:
+            raise ValueError(f"beam_study.platform: {p.name} needs a waypoint trajectory of at least two "
+                             "legs (each leg is one flight)")
+        if not any(s.kind == "gps" and s.name == st.gps for s in p.sensors):
+            raise ValueError(f"beam_study.gps: platform {p.name} has no GPS named {st.gps!r}")
+        return self
 
     @model_validator(mode="after")
     def _imports_match_devices(self):

@@ -14,7 +14,7 @@ from simart_pipeline.scene import meshes as scene_meshes
 
 # Assets whose partitions are a tree of groups, or a directory of standard files.
 TREE_ASSETS = {"sensor_frames", "session", "radar_frames"}
-DIRECTORY_ASSETS = {"paired_meshes", "session_bag"}
+DIRECTORY_ASSETS = {"paired_meshes", "session_bag", "beam_prediction"}
 
 
 class ProjectResource(dg.ConfigurableResource):
