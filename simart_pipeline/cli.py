@@ -151,51 +151,6 @@ def _failure(result, label: str) -> StepFailed:
     return StepFailed(f"({label}): the run failed")
 
 
-def partition_status(instance, plan, asset: str, key, data_root: Path, paths: list[Path]) -> tuple[bool, str]:
-    """(up to date, why not): up to date when the last materialisation recorded in ``instance`` has
-    the data version the inputs give now, was written under ``data_root``, and its stores exist."""
-    import dagster as dg
-
-    from simart_pipeline import versions
-    from simart_pipeline.partitions import split_key
-
-    _, sub = split_key(key)
-    expected = plan.data_version(asset, sub)
-    records = instance.fetch_materializations(
-        dg.AssetRecordsFilter(asset_key=dg.AssetKey(asset), asset_partitions=[str(key)]), limit=1).records
-    if not records:
-        return False, "never materialised"
-    md = records[0].event_log_entry.asset_materialization.metadata
-    recorded = md["data_version"].value if "data_version" in md else None
-    if "data_root" not in md or md["data_root"].value != str(data_root):
-        return False, "not materialised under this data root"
-    if not all(p.exists() for p in paths):
-        return False, "its store is missing"
-    if recorded == expected:
-        return True, ""
-    old = md["data_version_inputs"].value if "data_version_inputs" in md else None
-    return False, versions.why_different(old, plan.inputs(asset, sub))
-
-
-def scene_steps(cfg, weathers, tiles) -> list[tuple[list[str], object]]:
-    """A scene's asset partitions in an order where every upstream comes first: ``[(asset names,
-    partition key)]``, one step a Dagster run of ``simart run``."""
-    import dagster as dg
-
-    from simart_pipeline.radio.materials import WEATHER_GROUP
-
-    steps = [(["osm_extract", "paired_meshes", "trajectory"], cfg.name)]
-    # one trace per weather group (sunny and night share the dry one), then each weather's stages
-    steps += [(["cirs", "radar_frames"], dg.MultiPartitionKey({"scene": cfg.name, "weather_group": g}))
-              for g in dict.fromkeys(WEATHER_GROUP[w] for w in weathers)]
-    steps += [(["sensor_frames", "kpis", "session"], dg.MultiPartitionKey({"scene": cfg.name, "weather": w}))
-              for w in weathers]
-    steps += [(["ckm_layers"], dg.MultiPartitionKey({"scene": cfg.name, "tile": t})) for t in tiles]
-    steps += [(["ckm_map"], cfg.name)]
-    steps += [(["session_bag"], dg.MultiPartitionKey({"scene": cfg.name, "weather": w})) for w in weathers]
-    return steps
-
-
 def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=None, verbose=False,
                       instance=None, progress=print, force: bool = False) -> dict[str, list[Path]]:
     """Register the scene and materialise every asset partition of it that is missing or stale
@@ -205,6 +160,7 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
 
     from simart_pipeline.assets import ALL_ASSETS, ALL_CHECKS
     from simart_pipeline.assets.config_sources import report_config_versions
+    from simart_pipeline.assets.staleness import partition_status, scene_steps, stores_of
     from simart_pipeline.assets.versioning import FORCE_TAG
     from simart_pipeline.definitions import build_definitions
     from simart_pipeline.partitions import scene_partitions
@@ -259,24 +215,6 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
 
     out["ckm"] = [map_path(data_root, cfg.name, name) for name in map_groups(cfg)]
     return out
-
-
-def stores_of(asset: str, key, data_root: Path, cfg) -> list[Path]:
-    """The stores an asset partition writes (the CKM assets: the scene's mosaic maps)."""
-    if asset in ("ckm_layers", "ckm_map"):
-        from simart_pipeline.ckm.maps import map_groups, map_path
-
-        return [map_path(data_root, cfg.name, name) for name in map_groups(cfg)]
-    return [store_of(asset, key, data_root)]
-
-
-def store_of(asset: str, key, data_root: Path) -> Path:
-    from simart_pipeline import stores
-    from simart_pipeline.partitions import split_key
-    from simart_pipeline.resources import DIRECTORY_ASSETS
-
-    scene, sub = split_key(key)
-    return stores.store_path(data_root, asset, scene, sub, suffix="" if asset in DIRECTORY_ASSETS else ".zarr")
 
 
 def cmd_run(args) -> int:
