@@ -151,53 +151,6 @@ def _failure(result, label: str) -> StepFailed:
     return StepFailed(f"({label}): the run failed")
 
 
-def partition_status(instance, plan, asset: str, key, data_root: Path, paths: list[Path]) -> tuple[bool, str]:
-    """(up to date, why not): up to date when the last materialisation recorded in ``instance`` has
-    the data version the inputs give now, was written under ``data_root``, and its stores exist."""
-    import dagster as dg
-
-    from simart_pipeline import versions
-    from simart_pipeline.partitions import split_key
-
-    _, sub = split_key(key)
-    expected = plan.data_version(asset, sub)
-    records = instance.fetch_materializations(
-        dg.AssetRecordsFilter(asset_key=dg.AssetKey(asset), asset_partitions=[str(key)]), limit=1).records
-    if not records:
-        return False, "never materialised"
-    md = records[0].event_log_entry.asset_materialization.metadata
-    recorded = md["data_version"].value if "data_version" in md else None
-    if "data_root" not in md or md["data_root"].value != str(data_root):
-        return False, "not materialised under this data root"
-    if not all(p.exists() for p in paths):
-        return False, "its store is missing"
-    if recorded == expected:
-        return True, ""
-    old = md["data_version_inputs"].value if "data_version_inputs" in md else None
-    return False, versions.why_different(old, plan.inputs(asset, sub))
-
-
-def scene_steps(cfg, weathers, tiles) -> list[tuple[list[str], object]]:
-    """A scene's asset partitions in an order where every upstream comes first: ``[(asset names,
-    partition key)]``, one step a Dagster run of ``simart run``."""
-    import dagster as dg
-
-    from simart_pipeline.radio.materials import WEATHER_GROUP
-
-    steps = [(["osm_extract", "paired_meshes", "trajectory"], cfg.name)]
-    # one trace per weather group (sunny and night share the dry one), then each weather's stages
-    steps += [(["cirs", "radar_frames"], dg.MultiPartitionKey({"scene": cfg.name, "weather_group": g}))
-              for g in dict.fromkeys(WEATHER_GROUP[w] for w in weathers)]
-    steps += [(["sensor_frames", "kpis", "session"], dg.MultiPartitionKey({"scene": cfg.name, "weather": w}))
-              for w in weathers]
-    steps += [(["ckm_layers"], dg.MultiPartitionKey({"scene": cfg.name, "tile": t})) for t in tiles]
-    steps += [(["ckm_map"], cfg.name)]
-    steps += [(["session_bag"], dg.MultiPartitionKey({"scene": cfg.name, "weather": w})) for w in weathers]
-    if cfg.beam_study is not None and set(weathers) == set(cfg.weathers):  # the study reads every weather
-        steps += [(["beam_prediction"], cfg.name)]
-    return steps
-
-
 def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=None, verbose=False,
                       instance=None, progress=print, force: bool = False) -> dict[str, list[Path]]:
     """Register the scene and materialise every asset partition of it that is missing or stale
@@ -207,6 +160,7 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
 
     from simart_pipeline.assets import ALL_ASSETS, ALL_CHECKS
     from simart_pipeline.assets.config_sources import report_config_versions
+    from simart_pipeline.assets.staleness import partition_status, scene_steps, stores_of
     from simart_pipeline.assets.versioning import FORCE_TAG
     from simart_pipeline.definitions import build_definitions
     from simart_pipeline.partitions import scene_partitions
@@ -263,24 +217,6 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
     return out
 
 
-def stores_of(asset: str, key, data_root: Path, cfg) -> list[Path]:
-    """The stores an asset partition writes (the CKM assets: the scene's mosaic maps)."""
-    if asset in ("ckm_layers", "ckm_map"):
-        from simart_pipeline.ckm.maps import map_groups, map_path
-
-        return [map_path(data_root, cfg.name, name) for name in map_groups(cfg)]
-    return [store_of(asset, key, data_root)]
-
-
-def store_of(asset: str, key, data_root: Path) -> Path:
-    from simart_pipeline import stores
-    from simart_pipeline.partitions import split_key
-    from simart_pipeline.resources import DIRECTORY_ASSETS
-
-    scene, sub = split_key(key)
-    return stores.store_path(data_root, asset, scene, sub, suffix="" if asset in DIRECTORY_ASSETS else ".zarr")
-
-
 def cmd_run(args) -> int:
     from simart_pipeline import engine
     from simart_pipeline.validation import scene_problems
@@ -304,6 +240,81 @@ def cmd_run(args) -> int:
     for asset, paths in stores.items():
         for p in paths:
             print(f"  {asset:14s} {p}")
+    return 0
+
+
+BACKFILL_DEFAULT_ASSETS = ("ckm_layers",)
+
+
+def scene_backfill(scene: str, assets=None, weathers=None, tiles=None, force: bool = False, instance=None,
+                   progress=print) -> str | None:
+    """Submit one Dagster backfill of a scene's asset partitions (``assets``, default every CKM
+    tile, narrowed by ``weathers`` and ``tiles``) that are missing or stale (all of them with
+    ``force``) to the instance, whose daemon runs it; returns its id (None: nothing to do).
+
+    The scene (a name or a directory holding scene.yaml) is registered under the data root the code
+    location uses ($SIMART_DATA or ./data), as ``simart run`` does."""
+    import dagster as dg
+
+    from simart_pipeline import versions
+    from simart_pipeline.assets.config_sources import report_config_versions
+    from simart_pipeline.assets.staleness import BACKFILL_TAG, stale_partitions, scene_partitions_of, submit_backfill
+    from simart_pipeline.assets.versioning import FORCE_TAG
+    from simart_pipeline.definitions import build_definitions
+    from simart_pipeline.partitions import scene_partitions, split_key
+
+    assets = list(assets or BACKFILL_DEFAULT_ASSETS)
+    unknown = [a for a in assets if a not in versions.STAGES]
+    if unknown:
+        raise CliError(f"--asset {' '.join(unknown)}: no such asset; assets: {', '.join(versions.STAGES)}")
+    data_root, scenes_root = registry.default_data_root(), registry.default_scenes_root()
+    scene_dir = Path(scene) if Path(scene, "scene.yaml").is_file() else registry.scene_dir(scene, data_root, scenes_root)
+    if not Path(scene_dir, "scene.yaml").is_file():
+        raise CliError(f"{scene}: not a registered scene nor a directory holding scene.yaml (scenes root {scenes_root})")
+    cfg = registry.register(scene_dir, data_root)
+    weathers, tiles = _plan(cfg, weathers, tiles)
+    if instance is None:
+        _prepare_dagster_home()
+        instance = dg.DagsterInstance.get()
+    instance.add_dynamic_partitions(scene_partitions.name, [cfg.name])
+    defs = build_definitions(data_root=str(data_root), scenes_root=str(scenes_root))
+    project = defs.resources["project"]
+    report_config_versions(instance, project.version_plan(cfg.name))
+    wanted = scene_partitions_of(cfg, assets, weathers, tiles)
+    every_stale = stale_partitions(instance, project, cfg.name)  # the scene's, every asset, upstream first
+    chosen = {p: "--force" for p in wanted} if force else {p: every_stale[p] for p in wanted if p in every_stale}
+    if not chosen:
+        progress(f"scene {cfg.name!r}: nothing to backfill, all {len(wanted)} asset partitions of "
+                 f"{', '.join(assets)} are up to date (--force recomputes them)")
+        return None
+    for (asset, key), why in chosen.items():
+        progress(f"  {asset} ({_label(key)}): {why}")
+    # upstream partitions that are neither up to date nor in this backfill: its runs would fail
+    reads, todo = set(), [(a, split_key(k)[1]) for a, k in chosen]
+    while todo:
+        for up in versions.upstream(cfg, *todo.pop()):
+            if up not in reads:
+                reads.add(up)
+                todo.append(up)
+    behind = [(a, k) for a, k in every_stale if (a, split_key(k)[1]) in reads and (a, k) not in chosen]
+    if behind:
+        names = list(dict.fromkeys(a for a, _ in behind))
+        progress(f"warning: {len(behind)} upstream partition(s) ({', '.join(f'{a} ({_label(k)})' for a, k in behind)}) "
+                 f"are missing or stale and not in this backfill, whose runs need them: add --asset "
+                 f"{' '.join(names)}, or run `simart run {scene_dir}` first")
+    tags = {BACKFILL_TAG: "cli", **({FORCE_TAG: "true"} if force else {})}
+    backfill_id = submit_backfill(instance, defs.resolve_asset_graph(), chosen, tags,
+                                  title=f"simart backfill {cfg.name}",
+                                  description=f"{len(chosen)} partition(s) of {', '.join(assets)}")
+    progress(f"backfill {backfill_id}: {len(chosen)} of {len(wanted)} asset partitions of scene {cfg.name!r} "
+             f"({len(wanted) - len(chosen)} up to date), submitted to the instance at {instance.root_directory}")
+    progress("  the daemon of `simart dev` runs it, one run at a time in the pools of dagster.yaml;")
+    progress(f"  watch it at http://127.0.0.1:3000/runs/b/{backfill_id}?tab=partitions (the UI's Backfills tab)")
+    return backfill_id
+
+
+def cmd_backfill(args) -> int:
+    scene_backfill(args.scene, args.asset, args.weather, args.tile, force=args.force)
     return 0
 
 
@@ -527,6 +538,19 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--force", action="store_true",
                    help="recompute every partition, even those whose data version is up to date")
     r.set_defaults(func=cmd_run)
+    bf = sub.add_parser("backfill", parents=[common], help="submit a Dagster backfill of a scene's stale partitions",
+                        description="Submit one Dagster backfill of those partitions of SCENE's assets (default: every "
+                                    "CKM tile, ckm_layers) that are missing or stale, to the project-local instance. "
+                                    "The daemon of `simart dev` runs it (one run per partition, in dependency order, "
+                                    "through the run queue and pools of dagster.yaml); an interrupted backfill is "
+                                    "resumed by submitting it again: what finished is up to date and left out. Data "
+                                    "root: $SIMART_DATA or ./data, the same as the code location's.")
+    bf.add_argument("scene", metavar="SCENE", help="scene name (registered) or scene directory")
+    bf.add_argument("--asset", nargs="+", metavar="A", help="these assets (default ckm_layers; e.g. ckm_layers ckm_map)")
+    bf.add_argument("--tile", nargs="+", metavar="T", help="only these CKM tiles (r<row>c<col>)")
+    bf.add_argument("--weather", nargs="+", metavar="W", help="only these weathers (sunny, rainy, night)")
+    bf.add_argument("--force", action="store_true", help="every chosen partition, even those that are up to date")
+    bf.set_defaults(func=cmd_backfill)
     v = sub.add_parser("validate", parents=[common], help="check a scene's config and inputs",
                        description="Check SCENE_DIR/scene.yaml against the schema and the scene's inputs; report "
                                    "every problem with its file and key path. Exit status 1 on any problem.")

@@ -5,6 +5,7 @@ import dagster as dg
 from simart_pipeline.assets import ALL_ASSETS, ALL_CHECKS, CONFIG_SOURCES
 from simart_pipeline.assets.config_sources import observation_jobs
 from simart_pipeline.assets.automation import AUTOMATION_SENSOR, KEEP_FRESH, new_scenes
+from simart_pipeline.assets.nightly import NIGHTLY_SENSOR
 from simart_pipeline.resources import ProjectResource, RayTracerResource, ZarrStoreIOManager
 
 # Every materialisable asset keeps itself fresh (assets/automation.py); the config sources
@@ -18,7 +19,7 @@ def build_definitions(data_root: str | None = None, scenes_root: str | None = No
     project = ProjectResource(**{k: v for k, v in (("data_root", data_root), ("scenes_root", scenes_root)) if v})
     return dg.Definitions(
         assets=AUTOMATED_ASSETS,
-        sensors=[AUTOMATION_SENSOR, new_scenes],
+        sensors=[AUTOMATION_SENSOR, new_scenes, NIGHTLY_SENSOR],
         jobs=observation_jobs(),
         asset_checks=ALL_CHECKS,
         resources={
