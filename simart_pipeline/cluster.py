@@ -68,17 +68,19 @@ def _with_op_tags(assets_def: dg.AssetsDefinition, tags: Mapping[str, object]) -
     """``assets_def`` whose op carries ``tags`` as well (the step tags the k8s executor reads);
     specs, code versions, pools and checks stay as they are."""
     op = assets_def.op
-    new_op = dg.OpDefinition(
-        compute_fn=op.compute_fn, name=op.name,
-        ins={d.name: dg.In.from_definition(d) for d in op.input_defs},
-        outs={d.name: dg.Out.from_definition(d) for d in op.output_defs},
-        description=op.description, config_schema=op.config_schema,
-        required_resource_keys=op.required_resource_keys, tags={**op.tags, **tags},
-        code_version=op.version, retry_policy=op.retry_policy, pool=op.pool)
     attrs = assets_def.get_attributes_dict()
-    attrs["node_def"] = new_op
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", dg.BetaWarning)  # execution_type, passed on unchanged
+        # OpDefinition.version is deprecated (2.0) with no public successor; execution_type is beta:
+        # both are passed on unchanged.
+        warnings.simplefilter("ignore", DeprecationWarning)
+        warnings.simplefilter("ignore", dg.BetaWarning)
+        attrs["node_def"] = dg.OpDefinition(
+            compute_fn=op.compute_fn, name=op.name,
+            ins={d.name: dg.In.from_definition(d) for d in op.input_defs},
+            outs={d.name: dg.Out.from_definition(d) for d in op.output_defs},
+            description=op.description, config_schema=op.config_schema,
+            required_resource_keys=op.required_resource_keys, tags={**op.tags, **tags},
+            code_version=op.version, retry_policy=op.retry_policy, pool=op.pool)
         return assets_def.__class__(**attrs)
 
 

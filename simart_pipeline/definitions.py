@@ -17,11 +17,11 @@ AUTOMATED_ASSETS = [*dg.map_asset_specs(lambda spec: spec.replace_attributes(aut
 
 
 # Jobs to launch from the command line (`dagster job backfill`, docs/cluster.md). A job holds assets
-# of one partition definition, so a scene's CKM takes three: its geometry (per scene), its tiles (per
-# scene and tile, the ray tracing), its map (per scene).
+# of one partition definition, so a scene's CKM takes three: its scene assets (per scene), its tiles
+# (per scene and tile, the ray tracing), its map (per scene).
 CKM_JOBS = [
-    dg.define_asset_job("scene_geometry", selection=["osm_extract", "paired_meshes"],
-                        description="A scene's source geometry and paired meshes (what the CKM tiles read)."),
+    dg.define_asset_job("scene_assets", selection=["osm_extract", "paired_meshes", "trajectory"],
+                        description="A scene's source geometry, paired meshes and trajectories."),
     dg.define_asset_job("ckm_tiles", selection=["ckm_layers"],
                         description="CKM tiles: one partition per (scene, tile), each a ray-tracing step."),
     dg.define_asset_job("ckm_maps", selection=["ckm_map"], description="A scene's CKM maps and pictures."),
