@@ -379,6 +379,24 @@ def test_k8s_executor_run_config_is_validated_by_dagster(k8s_defs):
            {"step_k8s_config": cluster.gpu_step_k8s_config(), "job_namespace": "simart"})
 
 
+def test_the_tile_keys_docs_cluster_md_backfills_are_partitions_of_ckm_tiles(k8s_defs):
+    """docs/cluster.md builds `dagster job backfill --partitions` from the scene's grid; those are
+    ckm_tiles partitions, and exactly the tiles the scene uses."""
+    from simart_pipeline.ckm.grid import scene_tiles
+    from simart_pipeline.config import load_scene_config
+
+    expr = "f'{cfg.name}|{t}' for t in scene_tiles(cfg.ckm)"
+    assert expr in (REPO / "docs" / "cluster.md").read_text()
+    cfg = load_scene_config(TINY)
+    keys = eval(f"[{expr}]", {"cfg": cfg, "scene_tiles": scene_tiles})  # the docs' own expression
+    assert keys == ["tiny|r0c0", "tiny|r0c1"]
+    instance = dg.DagsterInstance.ephemeral()
+    instance.add_dynamic_partitions("scene", ["tiny"])
+    partitions = k8s_defs.resolve_job_def("ckm_tiles").partitions_def
+    assert set(keys) < set(partitions.get_partition_keys(dynamic_partitions_store=instance))
+    assert {str(dg.MultiPartitionKey({"scene": "tiny", "tile": t})) for t in ("r0c0", "r0c1")} == set(keys)
+
+
 def test_the_code_server_module_loads_in_cluster_mode():
     """What the user deployment runs: the module the gRPC server loads, with the image's environment."""
     env = {**os.environ, "SIMART_EXECUTOR": "k8s", "SIMART_AUTOMATION": "off"}
