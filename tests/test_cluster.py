@@ -349,6 +349,8 @@ def test_a_ray_tracing_step_pod_gets_a_gpu_a_gpu_node_and_the_data_volume(k8s_de
     # one volume (the launcher's and the code location's are the same one), mounted once
     assert [(v.name, v.persistent_volume_claim.claim_name) for v in pod.volumes] == [("simart-data", "simart-data")]
     assert [(m.name, m.mount_path) for m in container.volume_mounts] == [("simart-data", "/simart")]
+    names = [e.name for e in container.env]
+    assert len(names) == len(set(names))  # the launcher's and the code location's variables merge, once each
     env = {e.name: e.value for e in container.env}
     assert env["SIMART_DATA"] == "/simart/data" and env["SIMART_EXECUTOR"] == "k8s"
     assert container.image == "registry.example.com/simart-pipeline:0.1.0"
