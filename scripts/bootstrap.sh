@@ -42,11 +42,15 @@ PY="${PYTHON:-python3}"
 if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
+# Extras: test (the suite's own readers), cluster (dagster-k8s: tests/test_cluster.py validates the
+# Kubernetes deployment against its schemas, docs/cluster.md). The stamp names them, so adding one
+# reinstalls.
+extras="test,cluster"
 stamp=.venv/.simart-installed
-if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ "$(cat "$stamp")" != "$extras" ]; then
   .venv/bin/python -m pip install -q --upgrade pip
-  .venv/bin/python -m pip install -q -e ".[test]"
-  touch "$stamp"
+  .venv/bin/python -m pip install -q -e ".[$extras]"
+  echo "$extras" > "$stamp"
 fi
 .venv/bin/simart preflight
 

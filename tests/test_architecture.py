@@ -16,7 +16,7 @@ from simart_pipeline import versions
 PACKAGE = Path(__file__).resolve().parents[1] / "simart_pipeline"
 GROUND_FLOOR = ("simart_pipeline.vocabulary", "simart_pipeline.clock")
 DAGSTER_LAYERS = ("simart_pipeline.assets", "simart_pipeline.resources", "simart_pipeline.partitions",
-                  "simart_pipeline.definitions", "simart_pipeline.cli")
+                  "simart_pipeline.definitions", "simart_pipeline.cli", "simart_pipeline.cluster")
 
 
 def _module_name(path: Path) -> str:
