@@ -22,9 +22,18 @@ need=()
 llvm_ok=""
 for v in 19 18 17 20; do have_pkg "libllvm$v" && llvm_ok="libllvm$v" && break; done
 for p in python3 python3-venv git; do have_pkg "$p" || need+=("$p"); done
-if [ ${#need[@]} -gt 0 ] || [ -z "$llvm_ok" ]; then
+# The browser test (tests/test_browser_ui.py) drives Debian's Chromium through Playwright (no
+# browser download); Ubuntu's chromium is a snap, which containers lack: set SIMART_CHROMIUM there.
+want_chromium=""
+if [ "$mode" = test ] && ! have_pkg chromium && [ -z "${SIMART_CHROMIUM:-}" ]; then want_chromium=1; fi
+if [ ${#need[@]} -gt 0 ] || [ -z "$llvm_ok" ] || [ -n "$want_chromium" ]; then
   export DEBIAN_FRONTEND=noninteractive
   $SUDO apt-get update -q
+  if [ -n "$want_chromium" ]; then
+    if apt-cache show chromium >/dev/null 2>&1; then need+=(chromium)
+    else echo "no Debian chromium package here: the browser test will fail; install a Chromium and set SIMART_CHROMIUM" >&2
+    fi
+  fi
   if [ -z "$llvm_ok" ]; then
     for v in 19 18 17; do
       if apt-cache show "libllvm$v" >/dev/null 2>&1; then need+=("libllvm$v"); break; fi

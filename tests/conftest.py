@@ -86,3 +86,27 @@ def scene_config(scene_dir, edit=None):
     if edit:
         edit(raw)
     return SceneConfig.model_validate(raw)
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on (for a dev server started by a test)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def processes_with_env(home: Path) -> list[int]:
+    """Pids of live processes whose environment holds ``DAGSTER_HOME=home``: everything a test's
+    ``simart dev`` started (dagster dev, its webserver, daemon, code server and run workers)."""
+    needle = f"DAGSTER_HOME={home}".encode()
+    out = []
+    for p in Path("/proc").iterdir():
+        if p.name.isdigit():
+            try:
+                if needle in (p / "environ").read_bytes().split(b"\0"):
+                    out.append(int(p.name))
+            except OSError:
+                pass
+    return out

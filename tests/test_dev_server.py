@@ -1,41 +1,24 @@
-"""`simart dev` serves the UI and stops cleanly on SIGTERM: the whole process group within seconds."""
+"""`simart dev` serves the UI and stops cleanly on SIGINT and on SIGTERM: the whole process group
+within seconds."""
 
 from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
 import urllib.request
-from pathlib import Path
 
+import pytest
+
+from conftest import free_port, processes_with_env
 from simart_pipeline.cli import DEV_STOP_GRACE_S
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _with_env(home: Path) -> list[int]:
-    """Pids of live processes whose environment holds DAGSTER_HOME=home."""
-    needle = f"DAGSTER_HOME={home}".encode()
-    out = []
-    for p in Path("/proc").iterdir():
-        if p.name.isdigit():
-            try:
-                if needle in (p / "environ").read_bytes().split(b"\0"):
-                    out.append(int(p.name))
-            except OSError:
-                pass
-    return out
-
-
-def test_simart_dev_serves_and_stops_on_sigterm(tmp_path):
-    home, port = tmp_path / "dagster_home", _free_port()
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_simart_dev_serves_and_stops_on_signal(tmp_path, signum):
+    home, port = tmp_path / "dagster_home", free_port()
     # automation off: the sensors would start materialising the repository's scenes
     env = {**os.environ, "DAGSTER_HOME": str(home), "SIMART_DATA": str(tmp_path / "data"), "SIMART_AUTOMATION": "off"}
     p = subprocess.Popen([sys.executable, "-m", "simart_pipeline.cli", "dev", "--", "--host", "127.0.0.1",
@@ -51,17 +34,17 @@ def test_simart_dev_serves_and_stops_on_sigterm(tmp_path):
             except OSError:
                 assert time.monotonic() < deadline, "the UI did not answer within 180 s"
                 time.sleep(1)
-        assert len(_with_env(home)) >= 2  # simart, dagster dev and its webserver and daemon
+        assert len(processes_with_env(home)) >= 2  # simart, dagster dev and its webserver and daemon
         t0 = time.monotonic()
-        p.send_signal(signal.SIGTERM)
+        p.send_signal(signum)
         p.wait(timeout=DEV_STOP_GRACE_S + 10)
         took = time.monotonic() - t0
         assert took < DEV_STOP_GRACE_S + 5, took
         time.sleep(1)
-        assert _with_env(home) == [], "a process of simart dev outlived it"
-        assert p.returncode == 128 + signal.SIGTERM
+        assert processes_with_env(home) == [], "a process of simart dev outlived it"
+        assert p.returncode == 128 + signum
     finally:
         if p.poll() is None:
             p.kill()
-        for pid in _with_env(home):
+        for pid in processes_with_env(home):
             os.kill(pid, signal.SIGKILL)
