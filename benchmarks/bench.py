@@ -82,9 +82,43 @@ def _sum_ckm_generator(r):
             f"{r.get('loop_cells_per_s')} cells/s: **{r.get('speedup_vs_per_cell_loop')}x** "
             f"({r.get('cells_traced')} cells, {r.get('loop_cells')} looped)",
             f"solver batching alone could gain at most {r.get('solver_batching_speedup_bound')}x",
-            "largest layer difference on the looped cells: "
-            + ", ".join(f"{k} {v:.3g}" for k, v in (r.get("max_abs_difference_on_looped_cells") or {}).items()
-                        if isinstance(v, (int, float)))]
+            _largest_differences(r.get("max_abs_difference_on_looped_cells") or {})]
+
+
+def _largest_differences(worst: dict) -> str:
+    nums = {k: v for k, v in worst.items() if isinstance(v, (int, float))}
+    nonzero = sorted(((k, v) for k, v in nums.items() if v), key=lambda kv: -kv[1])
+    return (f"largest layer difference on the looped cells: 0 in {len(nums) - len(nonzero)} of {len(nums)} layers"
+            + ("; " + ", ".join(f"{k} {v:.3g}" for k, v in nonzero[:6]) if nonzero else ""))
+
+
+def _sum_actors(r):
+    se, rt, sk = r.get("sensing", {}), r.get("ray_tracing", {}), r.get("skip_rule", {})
+    lines = [f"sensing with actors / without: **{se.get('ratio')}x** ({se.get('ms_per_frame_with')} / "
+             f"{se.get('ms_per_frame_without')} ms per frame, {se.get('frames')} frames)",
+             f"ray tracing (`cirs`) with actors / without: **{rt.get('ratio')}x** ({rt.get('ms_per_instant_with')} / "
+             f"{rt.get('ms_per_instant_without')} ms per instant; {rt.get('solver_calls_with')} / "
+             f"{rt.get('solver_calls_without')} solver calls)"]
+    for t in sk.get("thresholds", []):
+        e = t["link_gain_error_db"]
+        lines.append(f"skip rule at {t['actor_max_excess_path_m']} m ({sk.get('parked_cars')} parked cars): "
+                     f"{t['s']} s against {sk.get('every_actor_s')} s for every actor, link gain error p50 / p95 / max "
+                     f"{e['p50']} / {e['p95']} / {e['max']} dB, {t['links_gaining_or_losing_every_path']} links gain "
+                     "or lose every path")
+    return lines
+
+
+def _sum_sensing(r):
+    lines = [f"camera, {w}: {v.get('frames_per_s')} frames/s ({v.get('ms_per_frame')} ms)"
+             for w, v in (r.get("weathers") or {}).items()]
+    lines += [f"LiDAR 64 x 2048, {w}: {v.get('sweeps_per_s')} sweeps/s ({v.get('ms_per_sweep')} ms)"
+              for w, v in (_get(r, "lidar", "weathers") or {}).items()]
+    return lines
+
+
+def _sum_osm_build(r):
+    return [f"{name}: {v.get('total_s')} s (read {v.get('read_s')}, mesh {v.get('mesh_s')}, write {v.get('write_s')}); "
+            f"{v.get('visual_per_radio_triangle')}x more visual than radio triangles" for name, v in r.items()]
 
 
 def _sum_link_sys(r):
@@ -151,13 +185,14 @@ BENCHMARKS: list[Bench] = [
           lambda q, o: ["--out", str(o)] + (["--quick", "--scenes", "street_canyon"] if q else []),
           timeout_s=(200, 1500)),
     Bench("actors", "Moving actors: cost and the skip rule's error",
-          lambda q, o: ["--out", str(o / "results.json")] + (["--parked", "2", "--thresholds", "200", "1"] if q else []), timeout_s=(300, 900)),
+          lambda q, o: ["--out", str(o / "results.json")] + (["--parked", "2", "--thresholds", "200", "1"] if q else []),
+          timeout_s=(300, 900), summary=_sum_actors),
     Bench("sensing", "Sensor rendering speed (Helsinki) and the weathers",
           lambda q, o: ["--out", str(o)] + (["--frames", "4", "--sweeps", "2"] if q else []),
-          needs=(OSM / "helsinki.osm.pbf",), timeout_s=(120, 900)),
+          needs=(OSM / "helsinki.osm.pbf",), timeout_s=(120, 900), summary=_sum_sensing),
     Bench("osm_build", "Scene construction from the shared OSM extracts",
           lambda q, o: ["--json", str(o / "results.json")] + (["--repeat", "1"] if q else []),
-          needs=(OSM,), timeout_s=(90, 300)),
+          needs=(OSM,), timeout_s=(90, 300), summary=_sum_osm_build),
     Bench("link_sys", "Link abstraction: numpy against Sionna SYS",
           lambda q, o: ["--json", str(o / "results.json")] + (["--users", "500", "--repeat", "2"] if q else []),
           needs_module="sionna.sys", timeout_s=(120, 600), summary=_sum_link_sys),
