@@ -1,6 +1,6 @@
 """The cost of moving actors, and the error of the rule that leaves far actors out of a trace.
 
-    python -m benchmarks.actors [SCENE_DIR] [--out results.json]
+    python -m benchmarks.actors [SCENE_DIR] [--out results.json] [--parked 12] [--thresholds M ...]
 
 On one scene (default: the demo), measured side by side in one process after a warm-up of each:
 
@@ -89,6 +89,8 @@ def main(argv=None) -> int:
     ap.add_argument("scene_dir", nargs="?", default=str(DEMO))
     ap.add_argument("--out", type=Path)
     ap.add_argument("--parked", type=int, default=12, help="parked cars added for the skip rule")
+    ap.add_argument("--thresholds", type=float, nargs="+", metavar="M",
+                    help="skip-rule thresholds to measure (m; default: the config's, 50, 10 and 1)")
     args = ap.parse_args(argv)
     scene_dir = Path(args.scene_dir)
     cfg = load_scene_config(scene_dir)
@@ -137,7 +139,7 @@ def main(argv=None) -> int:
         result["skip_rule"] = {"every_actor_s": round(all_s, 3),
                                "solver_calls_every_actor": int(ds_all.attrs["trace_calls"]), "thresholds": []}
         result["skip_rule"]["parked_cars"] = args.parked
-        for threshold in (cfg.ray_tracing.actor_max_excess_path_m, 50.0, 10.0, 1.0):
+        for threshold in args.thresholds or (cfg.ray_tracing.actor_max_excess_path_m, 50.0, 10.0, 1.0):
             t_s, ds_t = _timed(lambda: trace(parked, threshold), repeat=1)
             # A link that has paths in one trace and none in the other counts as an infinite error.
             g = _gain_db(ds_t)

@@ -376,6 +376,21 @@ def cmd_preflight(args) -> int:
         return 3
 
 
+def cmd_bench(args) -> int:
+    root = registry.REPO_ROOT
+    if not (root / "benchmarks" / "bench.py").is_file():
+        raise CliError(f"{root / 'benchmarks'}: not found; `simart bench` runs from a source checkout of the project")
+    if str(root) not in sys.path:
+        sys.path.insert(0, str(root))
+    from benchmarks import bench
+
+    unknown = sorted(set(args.only or ()) - {b.name for b in bench.BENCHMARKS})
+    if unknown:
+        raise CliError(f"--only: unknown benchmark(s) {', '.join(unknown)}; known: "
+                       f"{', '.join(b.name for b in bench.BENCHMARKS)}")
+    return bench.run_from_args(args)
+
+
 def _floats(text: str, n: tuple[int, ...], what: str) -> tuple[float, ...]:
     try:
         values = tuple(float(v) for v in text.split(","))
@@ -609,6 +624,20 @@ def build_parser() -> argparse.ArgumentParser:
     f = sub.add_parser("preflight", parents=[common], help="check that Sionna RT can run here (libLLVM >= 17 or CUDA)",
                        description="Report the ray-tracing backend, or what is missing and how to fix it.")
     f.set_defaults(func=cmd_preflight)
+    bn = sub.add_parser(
+        "bench", parents=[common], help="run every stage benchmark and write one report (run time against error)",
+        description="Run the stage benchmarks of benchmarks/ one after the other, each in its own process, writing "
+                    "its JSON into DIR/<name>/; then DIR/results.json (every benchmark's results, wall time and "
+                    "exit status, the machine, package versions, git commit) and DIR/report.md (one section per "
+                    "benchmark). A failed benchmark is reported as failed (exit status 1); one whose inputs are "
+                    "missing is reported as skipped, with why. Same as `python -m benchmarks`. Needs a source "
+                    "checkout. docs/benchmarks.md")
+    bn.add_argument("--out", required=True, type=Path, metavar="DIR",
+                    help="folder for report.md, results.json and one folder per benchmark")
+    bn.add_argument("--quick", action="store_true",
+                    help="smaller settings: the whole command within about 10 minutes on 2 cores (full: an hour)")
+    bn.add_argument("--only", nargs="+", metavar="NAME", help="only these benchmarks (default: all)")
+    bn.set_defaults(func=cmd_bench)
     return p
 
 

@@ -1,0 +1,444 @@
+"""Every stage benchmark in one command: ``simart bench [--quick] --out DIR`` (= ``python -m benchmarks``).
+
+Runs each benchmark of :data:`BENCHMARKS` as its own process (``python -m benchmarks.<name>``) one
+after the other (never side by side: they time themselves), with settings that fit the mode
+(``--quick``: the whole command within about 10 minutes on 2 cores; full: within an hour). Each
+writes its JSON (and its own report or plots) into ``DIR/<name>/``; its stdout and stderr go to
+``DIR/<name>/stdout.txt`` and ``stderr.txt``. The command records every benchmark's wall time and
+exit status: one that fails or runs past its time limit is reported as failed, with the end of its
+stderr; one whose inputs are missing (the shared OSM extracts, the optional Sionna SYS extra) is
+reported as skipped, with why. Then it writes ``DIR/results.json`` (the machine, package versions,
+git commit and every benchmark's results) and ``DIR/report.md`` (one section per benchmark with its
+key figures). The exit status is 1 when any benchmark failed.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import importlib.util
+import json
+import os
+import platform
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+ROOT = Path(__file__).resolve().parents[1]
+OSM = ROOT.parent / "shared" / "data" / "osm"   # where benchmarks.osm_build and benchmarks.sensing read
+PACKAGES = ("sionna-rt", "mitsuba", "drjit", "dagster", "numpy", "sionna", "torch")
+
+
+@dataclass
+class Bench:
+    """One stage benchmark: its module under ``benchmarks``, its arguments per mode, and what it needs.
+
+    ``args(quick, out)`` gives the command-line arguments (``out``: its own folder). ``needs``: paths
+    that must exist; ``needs_module``: an importable module (an optional extra); ``json_from``: where
+    its JSON lands (``"results.json"`` in ``out``, or ``"stdout"`` for one that only prints it);
+    ``timeout_s``: per mode (quick, full); ``prepare(quick, out, env)`` runs first (its failure
+    fails the benchmark); ``summary(results)`` gives the key figures (lines) for the report.
+    """
+
+    name: str
+    title: str
+    args: Callable[[bool, Path], list[str]]
+    timeout_s: tuple[float, float] = (120, 900)
+    needs: tuple[Path, ...] = ()
+    needs_module: str | None = None
+    json_from: str = "results.json"
+    prepare: Callable | None = None
+    summary: Callable[[dict], list[str]] | None = None
+
+
+# --- key figures per benchmark -------------------------------------------------------------------
+
+def _get(d, *keys, default=None):
+    for k in keys:
+        if not isinstance(d, dict) or k not in d:
+            return default
+        d = d[k]
+    return d
+
+
+def _sum_tracing(r):
+    t = r.get("trajectory", {})
+    lines = [f"trajectory mode: {t.get('ms_per_time_step')} ms per time step, {t.get('ms_per_link_step')} ms per "
+             f"link-step ({t.get('time_steps')} steps x {t.get('links')} links, depth {r.get('max_depth')}, "
+             f"{r.get('samples_per_src'):.0e} samples)"]
+    for g in r.get("grid_scan", []):
+        lines.append(f"grid scan, {g['receivers']} receivers: {g['warm_ms_per_receiver']} ms per receiver warm "
+                     f"(first call {g['first_call_s']} s, warm {g['warm_s']} s)")
+    return lines
+
+
+def _sum_ckm_generator(r):
+    return [f"generator {r.get('generator_cells_per_s')} cells/s against one call per cell "
+            f"{r.get('loop_cells_per_s')} cells/s: **{r.get('speedup_vs_per_cell_loop')}x** "
+            f"({r.get('cells_traced')} cells, {r.get('loop_cells')} looped)",
+            f"solver batching alone could gain at most {r.get('solver_batching_speedup_bound')}x",
+            _largest_differences(r.get("max_abs_difference_on_looped_cells") or {})]
+
+
+def _largest_differences(worst: dict) -> str:
+    nums = {k: v for k, v in worst.items() if isinstance(v, (int, float))}
+    nonzero = sorted(((k, v) for k, v in nums.items() if v), key=lambda kv: -kv[1])
+    return (f"largest layer difference on the looped cells: 0 in {len(nums) - len(nonzero)} of {len(nums)} layers"
+            + ("; " + ", ".join(f"{k} {v:.3g}" for k, v in nonzero[:6]) if nonzero else ""))
+
+
+def _sum_actors(r):
+    se, rt, sk = r.get("sensing", {}), r.get("ray_tracing", {}), r.get("skip_rule", {})
+    lines = [f"sensing with actors / without: **{se.get('ratio')}x** ({se.get('ms_per_frame_with')} / "
+             f"{se.get('ms_per_frame_without')} ms per frame, {se.get('frames')} frames)",
+             f"ray tracing (`cirs`) with actors / without: **{rt.get('ratio')}x** ({rt.get('ms_per_instant_with')} / "
+             f"{rt.get('ms_per_instant_without')} ms per instant; {rt.get('solver_calls_with')} / "
+             f"{rt.get('solver_calls_without')} solver calls)"]
+    for t in sk.get("thresholds", []):
+        e = t["link_gain_error_db"]
+        lines.append(f"skip rule at {t['actor_max_excess_path_m']} m ({sk.get('parked_cars')} parked cars): "
+                     f"{t['s']} s against {sk.get('every_actor_s')} s for every actor, link gain error p50 / p95 / max "
+                     f"{e['p50']} / {e['p95']} / {e['max']} dB, {t['links_gaining_or_losing_every_path']} links gain "
+                     "or lose every path")
+    return lines
+
+
+def _sum_sensing(r):
+    lines = [f"camera, {w}: {v.get('frames_per_s')} frames/s ({v.get('ms_per_frame')} ms)"
+             for w, v in (r.get("weathers") or {}).items()]
+    lines += [f"LiDAR 64 x 2048, {w}: {v.get('sweeps_per_s')} sweeps/s ({v.get('ms_per_sweep')} ms)"
+              for w, v in (_get(r, "lidar", "weathers") or {}).items()]
+    return lines
+
+
+def _sum_osm_build(r):
+    return [f"{name}: {v.get('total_s')} s (read {v.get('read_s')}, mesh {v.get('mesh_s')}, write {v.get('write_s')}); "
+            f"{v.get('visual_per_radio_triangle')}x more visual than radio triangles" for name, v in r.items()]
+
+
+def _sum_link_sys(r):
+    return [f"{k}: {v}" for k, v in r.items() if re.search(r"ratio|speedup|_s$", k) and not isinstance(v, dict)][:12] \
+        or [_generic_line(r)]
+
+
+def _generic(r, limit=14):
+    """Leaf values whose names say ratio, speed-up, rate, target or error, with their paths."""
+    out = []
+
+    def walk(d, path):
+        if isinstance(d, dict):
+            for k, v in d.items():
+                walk(v, f"{path}.{k}" if path else str(k))
+        elif isinstance(d, (int, float, bool)) and re.search(
+                r"ratio|speedup|per_s|_met|fps|ms_per|error|agree|total_s|wall_s", path.split(".")[-1]):
+            out.append(f"{path}: {d}")
+
+    walk(r, "")
+    return out[:limit] + ([f"... and {len(out) - limit} more in results.json"] if len(out) > limit else [])
+
+
+def _generic_line(r):
+    return json.dumps(r)[:300]
+
+
+# --- preparation: a materialised session for the bag export ---------------------------------------
+
+TINY = ROOT / "tests" / "scenes" / "tiny"  # --quick: the rerun and the bag export on the test suite's tiny scene
+
+
+def _session_scene(quick: bool) -> Path:
+    return TINY if quick else ROOT / "scenes" / "demo"
+
+
+def _prepare_session(quick: bool, out: Path, env: dict) -> None:
+    """``simart run`` of the demo (``--quick``: the tiny test scene), sunny, one CKM tile, into
+    ``out/data`` for the bag export."""
+    home = out / "dagster_home"
+    home.mkdir(parents=True, exist_ok=True)
+    cmd = [sys.executable, "-m", "simart_pipeline.cli", "run", str(_session_scene(quick)), "--weather", "sunny",
+           "--tile", "r0c0", "--data", str(out / "data")]
+    with open(out / "prepare.txt", "w") as log:
+        rc = _run(cmd, {**env, "DAGSTER_HOME": str(home)}, log, subprocess.STDOUT, 300 if quick else 900)
+    if rc:
+        raise subprocess.CalledProcessError(rc, cmd)
+
+
+def _bag_out(out: Path) -> Path:
+    return out / "bag"
+
+
+BENCHMARKS: list[Bench] = [
+    Bench("raytracing_front", "Ray tracing: run time against error (Pareto front)",
+          lambda q, o: ["--out", str(o)] + (["--quick"] if q else []), timeout_s=(240, 1800)),
+    Bench("tracing", "Ray tracing cost (trajectory mode and grid scans)",
+          lambda q, o: ["--receivers", "50"] if q else [], timeout_s=(120, 600), json_from="stdout",
+          summary=_sum_tracing),
+    Bench("ckm_generator", "CKM generator against one PathSolver call per cell",
+          lambda q, o: ["--out", str(o)] + (["--loop-cells", "15"] if q else []), timeout_s=(150, 900),
+          summary=_sum_ckm_generator),
+    Bench("ckm_solver", "One-pass CKM solver against PathSolver (Sionna's bundled scenes)",
+          lambda q, o: ["--out", str(o)] + (["--quick", "--scenes", "street_canyon"] if q else []),
+          timeout_s=(200, 1500)),
+    Bench("actors", "Moving actors: cost and the skip rule's error",
+          lambda q, o: ["--out", str(o / "results.json")] + (["--parked", "2", "--thresholds", "200", "1"] if q else []),
+          timeout_s=(300, 900), summary=_sum_actors),
+    Bench("sensing", "Sensor rendering speed (Helsinki) and the weathers",
+          lambda q, o: ["--out", str(o)] + (["--frames", "4", "--sweeps", "2"] if q else []),
+          needs=(OSM / "helsinki.osm.pbf",), timeout_s=(120, 900), summary=_sum_sensing),
+    Bench("osm_build", "Scene construction from the shared OSM extracts",
+          lambda q, o: ["--json", str(o / "results.json")] + (["--repeat", "1"] if q else []),
+          needs=(OSM,), timeout_s=(90, 300), summary=_sum_osm_build),
+    Bench("link_sys", "Link abstraction: numpy against Sionna SYS",
+          lambda q, o: ["--json", str(o / "results.json")] + (["--users", "500", "--repeat", "2"] if q else []),
+          needs_module="sionna.sys", timeout_s=(120, 600), summary=_sum_link_sys),
+    Bench("rerun", "Caching: reruns (first, unchanged, one sensor, materials); --quick: the tiny test scene",
+          lambda q, o: ["--out", str(o)] + (["--scene", str(TINY)] if q else []), timeout_s=(200, 1200)),
+    Bench("bag_export", "Export of a materialised session as a ROS bag (MCAP); --quick: the tiny test scene",
+          lambda q, o: [str(o / "data"), str(_session_scene(q)), str(_bag_out(o))],
+          timeout_s=(120, 600), json_from="stdout", prepare=_prepare_session),
+]
+# Not run: benchmarks.compare_stores compares two data roots (a refactoring check, not a measure).
+
+
+# --- the machine ---------------------------------------------------------------------------------
+
+def machine() -> dict:
+    from importlib import metadata
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    mem = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal"):
+                mem = round(int(line.split()[1]) / 2**20, 1)
+    except OSError:
+        pass
+    versions = {}
+    for p in PACKAGES:
+        try:
+            versions[p] = metadata.version(p)
+        except metadata.PackageNotFoundError:
+            versions[p] = None
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True,
+                                timeout=10).stdout.strip() or None
+        dirty = bool(subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT,
+                                    capture_output=True, text=True, timeout=10).stdout.strip())
+    except (OSError, subprocess.SubprocessError):
+        commit, dirty = None, None
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return {"cpu": cpu, "cores": cores, "memory_gib": mem, "os": platform.platform(),
+            "python": platform.python_version(), "packages": versions, "git_commit": commit,
+            "git_dirty": dirty}
+
+
+# --- running -------------------------------------------------------------------------------------
+
+def _tail(path: Path, n: int = 15) -> str:
+    try:
+        return "\n".join(path.read_text(errors="replace").rstrip().splitlines()[-n:])
+    except OSError:
+        return ""
+
+
+def _json_from_stdout(text: str):
+    """The last JSON object printed (benchmarks that print it after progress lines)."""
+    starts = [m.start() for m in re.finditer(r"^\{", text, re.M)]
+    for s in reversed(starts):
+        try:
+            return json.loads(text[s:])
+        except json.JSONDecodeError:
+            continue
+    return None
+
+
+def _run(cmd: list[str], env: dict, stdout, stderr, timeout: float) -> int:
+    """Run ``cmd`` in its own process group; past ``timeout`` the whole group (the benchmark and
+    whatever it started, e.g. ``simart run``) is killed and TimeoutExpired raised."""
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=stdout, stderr=stderr, start_new_session=True)
+    try:
+        return proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+        raise
+
+
+def run_one(b: Bench, quick: bool, out: Path, env: dict | None = None, module_prefix: str = "benchmarks.") -> dict:
+    """Run benchmark ``b`` into ``out/<name>``; its record: status (ok, failed, skipped), why,
+    wall time, exit status, results."""
+    env = dict(os.environ if env is None else env)
+    d = out / b.name
+    rec = {"name": b.name, "title": b.title, "status": None, "reason": None, "wall_s": None,
+           "returncode": None, "prepare_s": None, "command": None, "results": None, "report": None, "plots": []}
+    missing = [str(p) for p in b.needs if not Path(p).exists()]
+    if missing:
+        rec.update(status="skipped", reason="input missing: " + ", ".join(missing))
+        return rec
+    if b.needs_module:
+        try:
+            found = importlib.util.find_spec(b.needs_module) is not None
+        except (ImportError, ValueError):
+            found = False
+        if not found:
+            rec.update(status="skipped", reason=f"not installed: {b.needs_module} (the optional extra; "
+                                                "pip install -e '.[sys-reference]')")
+            return rec
+    if d.exists():  # a rerun into the same DIR replaces this benchmark's folder whole
+        shutil.rmtree(d)
+    d.mkdir(parents=True)
+    cmd = [sys.executable, "-m", module_prefix + b.name] + b.args(quick, d)
+    rec["command"] = "python " + " ".join(cmd[1:])
+    timeout = b.timeout_s[0 if quick else 1]
+    try:
+        if b.prepare is not None:
+            t0 = time.perf_counter()
+            b.prepare(quick, d, env)
+            rec["prepare_s"] = round(time.perf_counter() - t0, 2)
+        t0 = time.perf_counter()
+        with open(d / "stdout.txt", "w") as so, open(d / "stderr.txt", "w") as se:
+            rc = _run(cmd, env, so, se, timeout)
+        rec["returncode"] = rc
+        rec["status"] = "ok" if rc == 0 else "failed"
+        if rc != 0:
+            rec["reason"] = f"exit status {rc}: " + (_tail(d / "stderr.txt", 6) or "(no stderr)")
+    except subprocess.TimeoutExpired:
+        rec.update(status="failed", reason=f"ran past its limit of {timeout:.0f} s and was stopped")
+    except subprocess.CalledProcessError as exc:
+        t0 = None
+        rec.update(status="failed", returncode=exc.returncode,
+                   reason=f"preparation failed (exit status {exc.returncode}): " + _tail(d / "prepare.txt", 6))
+    except OSError as exc:
+        t0 = None
+        rec.update(status="failed", reason=f"could not start: {exc}")
+    rec["wall_s"] = None if t0 is None else round(time.perf_counter() - t0, 2)
+    results = None
+    if b.json_from == "stdout":
+        results = _json_from_stdout((d / "stdout.txt").read_text(errors="replace")) if (d / "stdout.txt").exists() else None
+        if results is not None:
+            (d / "results.json").write_text(json.dumps(results, indent=2) + "\n")
+    elif (d / b.json_from).exists():
+        try:
+            results = json.loads((d / b.json_from).read_text())
+        except json.JSONDecodeError as exc:
+            if rec["status"] == "ok":
+                rec.update(status="failed", reason=f"{b.json_from} is not JSON: {exc}")
+    if rec["status"] == "ok" and results is None:
+        if b.json_from == "stdout":
+            results = {"stdout": _tail(d / "stdout.txt", 20)}  # a benchmark that prints lines, not JSON
+        else:
+            rec.update(status="failed", reason=f"exit status 0 but no {b.json_from} written")
+    rec["results"] = results
+    if (d / "report.md").exists():
+        rec["report"] = (d / "report.md").read_text()
+    rec["plots"] = sorted(str(p.relative_to(out)) for p in d.rglob("*.png"))
+    return rec
+
+
+def run_all(out: Path, quick: bool, only: list[str] | None = None, benchmarks: list[Bench] | None = None,
+            log=print, module_prefix: str = "benchmarks.") -> dict:
+    benchmarks = BENCHMARKS if benchmarks is None else benchmarks
+    chosen = [b for b in benchmarks if not only or b.name in only]
+    out.mkdir(parents=True, exist_ok=True)
+    started = dt.datetime.now(dt.timezone.utc)
+    t0 = time.perf_counter()
+    records = []
+    for b in chosen:
+        log(f"[bench] {b.name} ...")
+        rec = run_one(b, quick, out, module_prefix=module_prefix)
+        records.append(rec)
+        log(f"[bench] {b.name}: {rec['status']}" + (f" in {rec['wall_s']} s" if rec["wall_s"] is not None else "")
+            + (f" ({rec['reason'].splitlines()[0]})" if rec["reason"] else ""))
+    results = {"mode": "quick" if quick else "full",
+               "command": "simart bench" + (" --quick" if quick else "") + f" --out {out}",
+               "started_utc": started.isoformat(timespec="seconds"),
+               "total_wall_s": round(time.perf_counter() - t0, 1), "machine": machine(),
+               "benchmarks": records}
+    write(out, results, benchmarks)
+    return results
+
+
+# --- writing -------------------------------------------------------------------------------------
+
+def _demote(md: str) -> str:
+    """A benchmark's own report inside a section: its headings two levels down, its image paths
+    relative to DIR."""
+    return re.sub(r"^(#+)", lambda m: "#" * min(len(m.group(1)) + 2, 6), md.strip(), flags=re.M)
+
+
+def report_md(results: dict, benchmarks: list[Bench] | None = None) -> str:
+    benchmarks = BENCHMARKS if benchmarks is None else benchmarks
+    by_name = {b.name: b for b in benchmarks}
+    m = results["machine"]
+    recs = results["benchmarks"]
+    count = {s: sum(r["status"] == s for r in recs) for s in ("ok", "failed", "skipped")}
+    pk = ", ".join(f"{k} {v}" for k, v in m["packages"].items() if v)
+    lines = [f"# Benchmarks ({results['mode']})", "",
+             f"`{results['command']}`, started {results['started_utc']}, {results['total_wall_s']} s in all.", "",
+             f"Machine: {m['cpu']}, {m['cores']} cores, {m['memory_gib']} GiB, {m['os']}; Python {m['python']}; "
+             f"{pk}; commit {m['git_commit'] or 'unknown'}{' (with uncommitted changes)' if m['git_dirty'] else ''}.",
+             "", f"**{count['ok']} ran, {count['failed']} failed, {count['skipped']} skipped.**", "",
+             "| benchmark | status | wall (s) | why |", "|---|---|---|---|"]
+    for r in recs:
+        why = (r["reason"] or "").splitlines()[0] if r["reason"] else ""
+        status = {"ok": "ok", "failed": "**FAILED**", "skipped": "**SKIPPED**"}[r["status"]]
+        lines.append(f"| {r['name']} | {status} | {r['wall_s'] if r['wall_s'] is not None else '–'} | {why} |")
+    for r in recs:
+        lines += ["", f"## {r['name']}: {r['title']}", ""]
+        if r["status"] == "skipped":
+            lines.append(f"> **SKIPPED: {r['reason']}.** Nothing of this stage was measured.")
+            continue
+        lines.append(f"`{r['command']}`: {r['status']}, {r['wall_s']} s"
+                     + (f" (after {r['prepare_s']} s of preparation: `{r['name']}/prepare.txt`)." if r.get("prepare_s")
+                        else "."))
+        if r["status"] == "failed":
+            lines += ["", f"> **FAILED: {r['reason'].splitlines()[0] if r['reason'] else 'unknown'}**", "",
+                      "```", (r["reason"] or "").strip(), "```",
+                      f"(stdout and stderr: `{r['name']}/stdout.txt`, `{r['name']}/stderr.txt`)"]
+        res = r["results"]
+        if r["report"]:
+            lines += ["", re.sub(r"\]\((?!https?:|/)", f"]({r['name']}/", _demote(r["report"]))]
+        elif res is not None and set(res) == {"stdout"}:
+            lines += ["", "```", res["stdout"], "```"]
+        elif res is not None:
+            b = by_name.get(r["name"])
+            try:
+                figs = b.summary(res) if b is not None and b.summary is not None else _generic(res)
+            except Exception as exc:  # a changed JSON layout must not lose the rest of the report
+                figs = [f"(key figures unavailable: {type(exc).__name__}: {exc}; see results.json)"] + _generic(res)
+            lines += [""] + [f"- {f}" for f in figs]
+        for p in r["plots"]:
+            if not r["report"] or Path(p).name not in r["report"]:
+                lines.append(f"- plot: `{p}`")
+    return "\n".join(lines) + "\n"
+
+
+def write(out: Path, results: dict, benchmarks: list[Bench] | None = None) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps(results, indent=2, default=str) + "\n")
+    (out / "report.md").write_text(report_md(results, benchmarks))
+
+
+def run_from_args(args) -> int:
+    res = run_all(args.out, args.quick, args.only)
+    print(f"wrote {args.out / 'report.md'} and {args.out / 'results.json'} in {res['total_wall_s']} s")
+    return 1 if any(r["status"] == "failed" for r in res["benchmarks"]) else 0
+
+
+def main(argv=None) -> int:
+    """``python -m benchmarks ARGS`` is ``simart bench ARGS``: one parser, one code path."""
+    from simart_pipeline import cli
+
+    return cli.main(["bench", *(sys.argv[1:] if argv is None else argv)])
