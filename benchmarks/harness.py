@@ -44,7 +44,7 @@ class Pipeline:
     """One scene registered on its own data root with an ephemeral Dagster instance (as
     ``cli.materialize_scene`` sets it up), to materialise chosen asset partitions one run at a time."""
 
-    def __init__(self, scene_dir: Path, data_root: Path):
+    def __init__(self, scene_dir: Path, data_root: Path, instance=None):
         import dagster as dg
 
         from simart_pipeline import registry
@@ -54,7 +54,7 @@ class Pipeline:
 
         self.scene_dir, self.data_root = Path(scene_dir), Path(data_root)
         self.cfg = registry.register(self.scene_dir, self.data_root)
-        self.instance = dg.DagsterInstance.ephemeral()
+        self.instance = instance or dg.DagsterInstance.ephemeral()
         self.instance.add_dynamic_partitions(scene_partitions.name, [self.cfg.name])
         self.resources = build_definitions(data_root=str(self.data_root)).resources
         report_config_versions(self.instance, self.resources["project"].version_plan(self.cfg.name))
