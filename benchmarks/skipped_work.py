@@ -88,6 +88,9 @@ def weather_reuse(src: Path, tmp: Path, tile: str | None) -> dict:
                          "radio_step_s": sum(s["seconds"] or 0.0 for s in radio_steps)}
     key = pipe.key(weather_group=group)
     counts = {a: materialisation_count(pipe.instance, a, key) for a in RADIO_ASSETS}
+    from simart_pipeline import resources
+
+    resources._LOADED.clear()  # a recompute loads its radio scene, as night's own trace would have
     forced = pipe.materialize(list(RADIO_ASSETS), key, force=True)
     night_radio = runs["night"]["radio"]
     return {"weather_group": group, "runs": runs,
