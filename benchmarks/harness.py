@@ -59,6 +59,11 @@ class Pipeline:
         self.resources = build_definitions(data_root=str(self.data_root)).resources
         report_config_versions(self.instance, self.resources["project"].version_plan(self.cfg.name))
 
+    def close(self) -> None:
+        """Dispose of the instance here, in this thread (left to the garbage collector, its
+        in-memory SQLite connections complain from whichever thread collects them)."""
+        self.instance.dispose()
+
     def key(self, **dims):
         """The partition key: ``key()`` the scene's, ``key(weather=...)``, ``key(weather_group=...)``
         or ``key(tile=...)`` a two-dimensional one."""

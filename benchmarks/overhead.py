@@ -189,6 +189,7 @@ def measure_dagster_run(runs: int, resources: dict) -> dict:
     alone(), in_graph()
     times = alternating({"trivial asset alone": alone, "trivial asset selected from the project's graph": in_graph},
                         runs)
+    instance.dispose()
     return {name: summary(v) for name, v in times.items()}
 
 
@@ -241,6 +242,7 @@ def run(quick: bool, out: Path) -> dict:
                    "cirs": measure_cirs(pipe, repeats, tmp / "scratch"),
                    "sensor_frames": measure_sensor_frames(pipe, repeats, tmp / "scratch"),
                    "dagster_per_run": measure_dagster_run(5 if quick else 10, pipe.resources)}
+        pipe.close()
     write_outputs(Path(out), results, report_lines(results))
     return results
 

@@ -92,6 +92,7 @@ def weather_reuse(src: Path, tmp: Path, tile: str | None) -> dict:
 
     resources._LOADED.clear()  # a recompute loads its radio scene, as night's own trace would have
     forced = pipe.materialize(list(RADIO_ASSETS), key, force=True)
+    pipe.close()
     night_radio = runs["night"]["radio"]
     return {"weather_group": group, "runs": runs,
             "radio_materialisations_after_both_runs": counts,
@@ -131,6 +132,8 @@ def no_camera(src: Path, tmp: Path, repeats: int) -> dict:
     for name in variants:  # warm-up, not counted
         stage(name)()
     times = alternating({name: stage(name) for name in variants}, repeats)
+    for p in pipes.values():
+        p.close()
     out = {"variants": {}}
     base = summary(times["as it is"])
     for name in variants:
@@ -191,6 +194,7 @@ def tile_inside_buildings(src: Path, tmp: Path, repeats: int) -> dict:
         if None not in spots.values():
             break
     if spots["inside"] is None or spots["street"] is None:
+        base.close()
         return {"skipped_by_project": None, "note": f"no place found for the two tiles: {spots}"}
     pipes, grids = {}, {}
     for i, (name, centre) in enumerate(spots.items()):
@@ -219,6 +223,8 @@ def tile_inside_buildings(src: Path, tmp: Path, repeats: int) -> dict:
     for name in pipes:  # warm-up, not counted
         stage(name)()
     times = alternating({name: stage(name) for name in pipes}, repeats)
+    for p in (base, *pipes.values()):
+        p.close()
     out = {"centres_m": spots, "cell_size_m": ckm.cell_size_m, "variants": {}}
     for name in pipes:
         meta = last[name]["metadata"].get("ckm_layers", {})
