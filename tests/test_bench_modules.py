@@ -1,0 +1,125 @@
+"""The integration benchmarks (benchmarks.overhead, benchmarks.skipped_work): what they observe and
+how they compute and write their figures. No wall-clock time is asserted."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from benchmarks import harness, overhead, skipped_work
+
+TINY = Path(__file__).parent / "scenes" / "tiny"
+
+
+def test_night_reuses_sunnys_radio_work(tmp_path):
+    """On a fresh data root, sunny then night: sunny's run computes the radio partitions of group
+    sunny, night's finds them up to date (progress lines) and the instance holds one
+    materialisation of each (records); night's own sensor stage is computed."""
+    r = skipped_work.weather_reuse(TINY, tmp_path, "r0c0")
+    sunny, night = r["runs"]["sunny"], r["runs"]["night"]
+    label = "tiny|sunny"  # how simart run labels the (scene, weather group) partition
+    for asset in skipped_work.RADIO_ASSETS:
+        assert sunny["radio"][asset] == {label: "computed"}
+        assert night["radio"][asset] == {label: "up to date"}
+        assert r["radio_materialisations_after_both_runs"][asset] == 1
+    assert r["night_recomputed_radio"] is False
+    assert skipped_work.statuses(night["steps"], "sensor_frames") == {"tiny|night": "computed"}
+    assert r["forced_radio_recompute_s"] > 0 and r["time_saved_s"] == r["forced_radio_recompute_s"]
+
+
+def test_parse_progress_groups_lines_into_steps():
+    lines = ["[ 1/5] osm_extract (tiny): up to date",
+             "[ 2/5] cirs (tiny|sunny): computing (never materialised)",
+             "[ 3/5] radar_frames (tiny|sunny): computing (never materialised)",
+             "        done in 2.5 s",
+             "[ 4/5] sensor_frames (tiny|night): up to date",
+             "[ 5/5] kpis (tiny|night): computing (--force)",
+             "        done in 0.5 s",
+             "scene 'tiny': 3 of 5 asset partitions computed, 2 up to date, in 3.1 s"]
+    steps = skipped_work.parse_progress(lines)
+    assert [s["label"] for s in steps] == ["tiny", "tiny|sunny", "tiny|night"]
+    assert steps[1] == {"label": "tiny|sunny", "seconds": 2.5,
+                        "assets": {"cirs": "computed", "radar_frames": "computed"}}
+    assert steps[0]["seconds"] is None and steps[2]["seconds"] == 0.5
+    assert skipped_work.statuses(steps, "sensor_frames") == {"tiny|night": "up to date"}
+
+
+def test_inside_tile_is_masked_and_traced_without_a_radio_scene():
+    """The spot skipped_work picks inside a building: every cell of its tile is masked, and the
+    project's tile layers need no radio scene for it (nothing traced); the street spot has none masked."""
+    from simart_pipeline.ckm.grid import scene_tiles
+    from simart_pipeline.ckm.layers import tile_grid, tile_layers
+    from simart_pipeline.config import load_scene_config
+    from simart_pipeline.scene import source
+
+    cfg = load_scene_config(TINY)
+    geom = source.build_source_geometry(cfg, TINY)
+    n = 2
+    spots = skipped_work.inside_and_street_tiles(geom, cfg.ckm.cell_size_m, cfg.ckm.heights[0],
+                                                 cfg.platforms[0].trajectory.waypoints_m[0][:2], n)
+    assert None not in spots.values()
+    for name, want_traced in (("inside", 0), ("street", n * n)):
+        ckm = cfg.ckm.model_copy(update={"center_m": spots[name], "size_m": (n * cfg.ckm.cell_size_m,) * 2,
+                                         "tiles": (1, 1)})
+        c = cfg.model_copy(update={"ckm": ckm})
+        tile = scene_tiles(ckm)[0]
+        assert int(tile_grid(c, geom, tile).traced.sum()) == want_traced
+        if name == "inside":
+            ds = tile_layers(None, c, geom, tile, TINY)
+            assert ds.attrs["cells_traced"] == 0
+            assert bool(ds["cell_inside_building"].all())
+
+
+def test_alternating_reverses_order_every_other_round():
+    calls = []
+    times = harness.alternating({"a": lambda: calls.append("a"), "b": lambda: calls.append("b") or 2.0}, 3)
+    assert calls == ["a", "b", "b", "a", "a", "b"]
+    assert times["b"] == [2.0, 2.0, 2.0] and len(times["a"]) == 3  # a returned seconds are used as given
+
+
+def test_overhead_split_accounts_for_the_whole_extra():
+    s = overhead.overhead_split(1.5, 1.0, {"store write": 0.2, "checks": 0.1})
+    assert s["extra_s"] == 0.5
+    assert sum(s["parts_s"].values()) == pytest.approx(0.5)
+    rest = next(k for k in s["parts_s"] if k.startswith("rest"))
+    assert s["parts_s"][rest] == pytest.approx(0.2)
+    assert s["parts_share_of_extra"]["store write"] == pytest.approx(0.4)
+    assert overhead.overhead_split(0.9, 1.0, {"x": 0.1})["parts_share_of_extra"] == {}  # no extra: no shares
+    assert harness.ratio(1.0, 0.0) is None and harness.ratio(3.0, 2.0) == 1.5
+
+
+def _fake_overhead(ratio_best):
+    side = {"best_s": ratio_best, "median_s": ratio_best, "samples_s": [ratio_best]}
+    bare = {"best_s": 1.0, "median_s": 1.0, "samples_s": [1.0]}
+    split = overhead.overhead_split(ratio_best, 1.0, {"store write": 0.05})
+    return {"scene": "tiny", "machine": "m", "repeats": 1,
+            "cirs": {"partition": "tiny|sunny", "time_steps": 6, "links": 2, "asset": side, "bare": bare,
+                     "ratio_best": ratio_best, "ratio_median": ratio_best, "target_ratio_max": 1.10,
+                     "target_met": ratio_best <= 1.10, "split": split},
+            "sensor_frames": {"partition": "tiny|sunny", "asset": side, "bare": bare, "ratio_best": ratio_best,
+                              "ratio_median": ratio_best, "split": split},
+            "dagster_per_run": {"trivial asset alone": {"best_s": 0.03, "median_s": 0.04}}}
+
+
+@pytest.mark.parametrize("r, verdict", [(1.05, "met"), (1.8, "missed")])
+def test_overhead_report_states_the_target(tmp_path, r, verdict):
+    results = _fake_overhead(r)
+    lines = overhead.report_lines(results)
+    harness.write_outputs(tmp_path, results, lines)
+    report = (tmp_path / "report.md").read_text()
+    assert f"**{verdict}**" in report and f"{r:.3f}x" in report
+    assert "store write: 0.05 s" in report
+    assert json.loads((tmp_path / "results.json").read_text())["cirs"]["ratio_best"] == r
+
+
+def test_scene_copy_edits_only_the_copy(tmp_path):
+    dst = harness.scene_copy(TINY, tmp_path / "tiny", skipped_work._drop_sensors({"camera"}))
+    from simart_pipeline.config import load_scene_config
+
+    kinds = [type(s).__name__ for p in load_scene_config(dst).platforms for s in p.sensors]
+    assert "Camera" not in kinds and "Lidar" in kinds
+    assert "Camera" in [type(s).__name__ for p in load_scene_config(TINY).platforms for s in p.sensors]
+    assert np.isfinite(harness.summary([0.3, 0.1, 0.2])["median_s"])
