@@ -201,6 +201,12 @@ BENCHMARKS: list[Bench] = [
     Bench("bag_export", "Export of a materialised session as a ROS bag (MCAP); --quick: the tiny test scene",
           lambda q, o: [str(o / "data"), str(_session_scene(q)), str(_bag_out(o))],
           timeout_s=(120, 600), json_from="stdout", prepare=_prepare_session),
+    Bench("overhead", "Integration overhead: the cirs and sensor_frames assets against their bare calls, "
+          "Dagster's per-run cost; --quick: the tiny test scene",
+          lambda q, o: ["--out", str(o)] + (["--quick"] if q else []), timeout_s=(180, 900)),
+    Bench("skipped_work", "Skipped work, with the time saved: radio reuse across weathers, no cameras, "
+          "a CKM tile inside a building; --quick: the tiny test scene",
+          lambda q, o: ["--out", str(o)] + (["--quick"] if q else []), timeout_s=(300, 1500)),
 ]
 # Not run: benchmarks.compare_stores compares two data roots (a refactoring check, not a measure).
 
