@@ -145,3 +145,23 @@ def test_every_registered_benchmark_module_exists():
         assert (bench.ROOT / "benchmarks" / f"{b.name}.py").is_file(), b.name
         argv = b.args(True, Path("/tmp/x"))
         assert all(isinstance(a, str) for a in argv)
+
+
+def test_link_sys_measures_the_numpy_side_without_sionna_sys(tmp_path):
+    """Without the optional extra the link benchmark still measures the numpy link abstraction and
+    says that Sionna SYS is not installed (with it, the comparison runs: pytest -m sys_reference)."""
+    import json
+
+    from benchmarks import link_sys
+
+    out = tmp_path / "link.json"
+    assert link_sys.main(["--users", "50", "--subcarriers", "24", "--repeat", "1", "--json", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert r["numpy_phy_evaluations_per_s"] == pytest.approx(50 / r["numpy_phy_s"])
+    assert r["numpy_mcs_selections_per_s"] == pytest.approx(50 / r["numpy_illa_s"])
+    try:
+        import sionna.sys  # noqa: F401
+        has_sys = True
+    except ImportError:
+        has_sys = False
+    assert ("sionna_sys" in r) != has_sys
