@@ -162,7 +162,7 @@ class _FrameRenderer:
             lights = (np.asarray(layer.face_class) == SemanticClass.UAV)[:, None] \
                 * np.asarray(wx.aircraft_light_radiance_rgb, np.float32)[None, :]
             self.actor_emission = mi.Float(np.ascontiguousarray(lights, np.float32).ravel())
-            dr.make_opaque(self.actor_emission)
+            dr.make_opaque(self.actor_albedo, self.actor_emission)
         self.lamps = street_lamps(caster.meshes, wx.street_lamp_spacing_m, wx.street_lamp_height_m) \
             if wx.has_street_lamps else None
         if self.lamps is not None:
