@@ -1,5 +1,10 @@
-"""``python -m benchmarks [--quick] --out DIR``: every stage benchmark, one report (benchmarks.bench)."""
+"""``python -m benchmarks [--quick] --out DIR``: every stage benchmark, one report (benchmarks.bench).
 
-from benchmarks.bench import main
+It is ``simart bench ARGS``: one parser, one code path (the CLI imports benchmarks.bench, not the
+other way round)."""
 
-raise SystemExit(main())
+import sys
+
+from simart_pipeline.cli import main
+
+raise SystemExit(main(["bench", *sys.argv[1:]]))

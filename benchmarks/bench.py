@@ -25,7 +25,7 @@ import signal
 import subprocess
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -445,9 +445,3 @@ def run_from_args(args) -> int:
     print(f"wrote {args.out / 'report.md'} and {args.out / 'results.json'} in {res['total_wall_s']} s")
     return 1 if any(r["status"] == "failed" for r in res["benchmarks"]) else 0
 
-
-def main(argv=None) -> int:
-    """``python -m benchmarks ARGS`` is ``simart bench ARGS``: one parser, one code path."""
-    from simart_pipeline import cli
-
-    return cli.main(["bench", *(sys.argv[1:] if argv is None else argv)])
