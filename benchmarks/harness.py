@@ -6,6 +6,7 @@ alternates the order of the things it compares; the machine named; ratios and re
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import platform
@@ -139,3 +140,21 @@ def write_outputs(out: Path, results: dict, lines: list[str]) -> None:
     (out / "results.json").write_text(json.dumps(results, indent=2, default=str) + "\n")
     (out / "report.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
+
+
+def quiet_dagster() -> None:
+    """Dagster's own log off: the benchmarks print their own lines."""
+    import logging
+
+    logging.getLogger("dagster").setLevel(logging.CRITICAL)
+
+
+def cli_main(run, doc: str, argv=None) -> int:
+    """``python -m benchmarks.NAME [--quick] --out DIR`` of a benchmark whose ``run(quick, out)``
+    measures and writes ``DIR/results.json`` and ``DIR/report.md``."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="the tiny test scene instead of the demo")
+    ap.add_argument("--out", required=True, type=Path, help="directory for results.json and report.md")
+    args = ap.parse_args(argv)
+    run(args.quick, args.out)
+    return 0

@@ -19,13 +19,13 @@ order; one warm-up of each first (kernel compilation, imports) is not counted. `
 
 from __future__ import annotations
 
-import argparse
 import tempfile
 import time
 from pathlib import Path
 
 from benchmarks.common import DEMO
-from benchmarks.harness import TINY, Pipeline, alternating, machine, ratio, scene_copy, summary, write_outputs
+from benchmarks.harness import (TINY, Pipeline, alternating, cli_main, machine, quiet_dagster, ratio, scene_copy, summary,
+                                write_outputs)
 
 TARGET_CIRS_RATIO = 1.10   # issue 20: the cirs asset against the bare Sionna calls it makes
 
@@ -65,8 +65,40 @@ def _noop_assets():
     return bench_noop
 
 
+def _asset_against_bare(pipe: Pipeline, asset: str, key, bare, repeats: int, before=None):
+    """({"asset": seconds, "bare": seconds} over ``repeats`` alternating runs, the asset's runs):
+    one materialisation of ``asset`` at ``key`` against ``bare()``, after one warm-up of each
+    (kernel compilation, imports; not counted). ``before()`` runs before each materialisation."""
+    runs: list[dict] = []
+
+    def materialise():
+        if before is not None:
+            before()
+        runs.append(pipe.materialize([asset], key))
+        return runs[-1]["wall_s"]
+
+    bare(), materialise()
+    runs.clear()
+    return alternating({"asset": materialise, "bare": bare}, repeats), runs
+
+
+def _store_writer(value, prefix: Path):
+    """A function that writes ``value()`` as a new store ``<prefix>_<n>.zarr`` each call (the
+    asset's store write, timed apart)."""
+    from simart_pipeline import stores
+
+    n = 0
+
+    def write():
+        nonlocal n
+        n += 1
+        stores.write_store(value(), prefix.with_name(f"{prefix.name}_{n}.zarr"))
+
+    return write
+
+
 def measure_cirs(pipe: Pipeline, repeats: int, scratch: Path) -> dict:
-    from simart_pipeline import resources, stores
+    from simart_pipeline import resources
     from simart_pipeline.radio import cirs as radio_cirs
     from simart_pipeline.radio.materials import WEATHER_GROUP
     from simart_pipeline.radio.pictures import traced_paths_markdown
@@ -87,24 +119,10 @@ def measure_cirs(pipe: Pipeline, repeats: int, scratch: Path) -> dict:
         last["radio"] = radio
         last["trace_only_s"] = time.perf_counter() - t0
 
-    runs: list[dict] = []
-
-    def asset():
-        resources._LOADED.clear()  # the asset loads its radio scene, as the bare calls do
-        runs.append(pipe.materialize(["cirs"], key))
-        return runs[-1]["wall_s"]
-
-    bare(), asset()  # warm-up: kernel compilation, imports; not counted
-    runs.clear()
-    times = alternating({"asset": asset, "bare": bare}, repeats)
+    # the asset loads its radio scene, as the bare calls do
+    times, runs = _asset_against_bare(pipe, "cirs", key, bare, repeats, before=resources._LOADED.clear)
     # The parts of the extra, each measured apart, as often.
-    n = 0
-
-    def write():
-        nonlocal n
-        n += 1
-        stores.write_store(last["ds"], scratch / f"cirs_{n}.zarr")
-
+    write = _store_writer(lambda: last["ds"], scratch / "cirs")
     lg = radio_cirs.link_geometry(cfg, traj)
     parts = alternating({
         "reading the inputs": lambda: _inputs(pipe),
@@ -130,7 +148,6 @@ def measure_cirs(pipe: Pipeline, repeats: int, scratch: Path) -> dict:
 
 
 def measure_sensor_frames(pipe: Pipeline, repeats: int, scratch: Path) -> dict:
-    from simart_pipeline import stores
     from simart_pipeline.sensing.sensor_frames import render_sensor_frames
 
     cfg, key = pipe.cfg, pipe.key(weather="sunny")
@@ -140,22 +157,8 @@ def measure_sensor_frames(pipe: Pipeline, repeats: int, scratch: Path) -> dict:
     def bare():
         last["tree"] = render_sensor_frames(meshes, traj, cfg, "sunny", pipe.scene_dir)
 
-    runs: list[dict] = []
-
-    def asset():
-        runs.append(pipe.materialize(["sensor_frames"], key))
-        return runs[-1]["wall_s"]
-
-    bare(), asset()
-    runs.clear()
-    times = alternating({"asset": asset, "bare": bare}, repeats)
-    n = 0
-
-    def write():
-        nonlocal n
-        n += 1
-        stores.write_store(last["tree"], scratch / f"sensor_frames_{n}.zarr")
-
+    times, runs = _asset_against_bare(pipe, "sensor_frames", key, bare, repeats)
+    write = _store_writer(lambda: last["tree"], scratch / "sensor_frames")
     parts = alternating({"reading the inputs": lambda: _inputs(pipe), "store write": write}, repeats)
     best = min(range(repeats), key=lambda i: runs[i]["wall_s"])
     steps = runs[best]["steps"]
@@ -226,9 +229,7 @@ def report_lines(results: dict) -> list[str]:
 
 def run(quick: bool, out: Path) -> dict:
     """Measure, write ``out/results.json`` and ``out/report.md``, return the results."""
-    import logging
-
-    logging.getLogger("dagster").setLevel(logging.CRITICAL)
+    quiet_dagster()
     src = TINY if quick else DEMO
     repeats = 3
     with tempfile.TemporaryDirectory() as tmp:
@@ -248,12 +249,7 @@ def run(quick: bool, out: Path) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="the tiny test scene instead of the demo")
-    ap.add_argument("--out", required=True, type=Path, help="directory for results.json and report.md")
-    args = ap.parse_args(argv)
-    run(args.quick, args.out)
-    return 0
+    return cli_main(run, __doc__, argv)
 
 
 if __name__ == "__main__":

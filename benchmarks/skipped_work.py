@@ -19,7 +19,6 @@ and ``DIR/report.md``.
 
 from __future__ import annotations
 
-import argparse
 import re
 import tempfile
 import time
@@ -28,7 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import DEMO
-from benchmarks.harness import TINY, Pipeline, alternating, machine, ratio, scene_copy, summary, write_outputs
+from benchmarks.harness import (TINY, Pipeline, alternating, cli_main, machine, quiet_dagster, ratio, scene_copy, summary,
+                                write_outputs)
 
 RADIO_ASSETS = ("cirs", "radar_frames")
 _LINE = re.compile(r"^\[\s*\d+/\d+\] (\S+) \(([^)]*)\): (computing.*|up to date)$")
@@ -268,9 +268,7 @@ def report_lines(r: dict) -> list[str]:
 
 def run(quick: bool, out: Path) -> dict:
     """Measure, write ``out/results.json`` and ``out/report.md``, return the results."""
-    import logging
-
-    logging.getLogger("dagster").setLevel(logging.CRITICAL)
+    quiet_dagster()
     src = TINY if quick else DEMO
     repeats = 3
     with tempfile.TemporaryDirectory() as tmp:
@@ -289,12 +287,7 @@ def run(quick: bool, out: Path) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="the tiny test scene instead of the demo")
-    ap.add_argument("--out", required=True, type=Path, help="directory for results.json and report.md")
-    args = ap.parse_args(argv)
-    run(args.quick, args.out)
-    return 0
+    return cli_main(run, __doc__, argv)
 
 
 if __name__ == "__main__":

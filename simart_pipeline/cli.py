@@ -151,6 +151,22 @@ def _failure(result, label: str) -> StepFailed:
     return StepFailed(f"({label}): the run failed")
 
 
+def _scene_on_instance(scene_dir, data_root, weathers, tiles, instance):
+    """Register the scene under ``data_root`` and its partition on ``instance`` (default: the
+    project-local one): (config, weathers, tiles, instance), weathers and tiles checked."""
+    import dagster as dg
+
+    from simart_pipeline.partitions import scene_partitions
+
+    cfg = registry.register(scene_dir, data_root)
+    weathers, tiles = _plan(cfg, weathers, tiles)
+    if instance is None:
+        _prepare_dagster_home()
+        instance = dg.DagsterInstance.get()
+    instance.add_dynamic_partitions(scene_partitions.name, [cfg.name])
+    return cfg, weathers, tiles, instance
+
+
 def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=None, verbose=False,
                       instance=None, progress=print, force: bool = False) -> dict[str, list[Path]]:
     """Register the scene and materialise every asset partition of it that is missing or stale
@@ -163,14 +179,8 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
     from simart_pipeline.assets.staleness import partition_status, scene_steps, stores_of
     from simart_pipeline.assets.versioning import FORCE_TAG
     from simart_pipeline.definitions import build_definitions
-    from simart_pipeline.partitions import scene_partitions
 
-    cfg = registry.register(scene_dir, data_root)
-    weathers, tiles = _plan(cfg, weathers, tiles)
-    if instance is None:
-        _prepare_dagster_home()
-        instance = dg.DagsterInstance.get()
-    instance.add_dynamic_partitions(scene_partitions.name, [cfg.name])
+    cfg, weathers, tiles, instance = _scene_on_instance(scene_dir, data_root, weathers, tiles, instance)
     defs = build_definitions(data_root=str(data_root))
     resources = defs.resources
     plan = resources["project"].version_plan(cfg.name)
@@ -254,14 +264,12 @@ def scene_backfill(scene: str, assets=None, weathers=None, tiles=None, force: bo
 
     The scene (a name or a directory holding scene.yaml) is registered under the data root the code
     location uses ($SIMART_DATA or ./data), as ``simart run`` does."""
-    import dagster as dg
-
     from simart_pipeline import versions
     from simart_pipeline.assets.config_sources import report_config_versions
     from simart_pipeline.assets.staleness import BACKFILL_TAG, stale_partitions, scene_partitions_of, submit_backfill
     from simart_pipeline.assets.versioning import FORCE_TAG
     from simart_pipeline.definitions import build_definitions
-    from simart_pipeline.partitions import scene_partitions, split_key
+    from simart_pipeline.partitions import split_key
 
     assets = list(assets or BACKFILL_DEFAULT_ASSETS)
     unknown = [a for a in assets if a not in versions.STAGES]
@@ -271,12 +279,7 @@ def scene_backfill(scene: str, assets=None, weathers=None, tiles=None, force: bo
     scene_dir = Path(scene) if Path(scene, "scene.yaml").is_file() else registry.scene_dir(scene, data_root, scenes_root)
     if not Path(scene_dir, "scene.yaml").is_file():
         raise CliError(f"{scene}: not a registered scene nor a directory holding scene.yaml (scenes root {scenes_root})")
-    cfg = registry.register(scene_dir, data_root)
-    weathers, tiles = _plan(cfg, weathers, tiles)
-    if instance is None:
-        _prepare_dagster_home()
-        instance = dg.DagsterInstance.get()
-    instance.add_dynamic_partitions(scene_partitions.name, [cfg.name])
+    cfg, weathers, tiles, instance = _scene_on_instance(scene_dir, data_root, weathers, tiles, instance)
     defs = build_definitions(data_root=str(data_root), scenes_root=str(scenes_root))
     project = defs.resources["project"]
     report_config_versions(instance, project.version_plan(cfg.name))

@@ -126,7 +126,7 @@ def ckm_passive(context: dg.AssetCheckExecutionContext, project: ProjectResource
 def beam_study_sound(context: dg.AssetCheckExecutionContext, project: ProjectResource) -> dg.AssetCheckResult:
     import json
 
-    from simart_pipeline.study.beam_prediction import study_problems
+    from simart_pipeline.study.beam_prediction import num_flights, study_problems
 
     scene = context.partition_key
     cfg = project.config(scene)
@@ -134,8 +134,7 @@ def beam_study_sound(context: dg.AssetCheckExecutionContext, project: ProjectRes
         return dg.AssetCheckResult(passed=True, description=f"{scene} has no beam study")
     out = stores.store_path(project.data_root, "beam_prediction", scene, suffix="")
     results = json.loads((out / "results.json").read_text())
-    platform = next(p for p in cfg.platforms if p.name == cfg.beam_study.platform)
-    problems = study_problems(results, len(platform.trajectory.waypoints_m) - 1)
+    problems = study_problems(results, num_flights(cfg))
     return _result(quality.CheckResult.of(problems, f"{len(results['train_flights'])} training and "
                                           f"{len(results['test_flights'])} test flights, disjoint",
                                           {"path": str(out)}))

@@ -20,8 +20,6 @@ def beam_prediction(context: dg.AssetExecutionContext, project: ProjectResource)
     """Vision- and position-aided beam prediction: the UAV detected in the base-station camera's
     frames of every weather, its image box and GPS fix predict the best beam; top-1/3/5 per weather
     against the paper's, with position-only, vision-only and ground-truth-box rows."""
-    import xarray as xr
-
     from simart_pipeline.study import beam_prediction as bp
 
     scene = context.partition_key
@@ -30,12 +28,12 @@ def beam_prediction(context: dg.AssetExecutionContext, project: ProjectResource)
     if st is None:
         raise dg.Failure(f"{scene}: scene.yaml has no beam_study section; this asset is only for such scenes")
     t0 = time.perf_counter()
-    trajectory = xr.open_zarr(stores.store_path(project.data_root, "trajectory", scene))
+    trajectory = stores.open_store(stores.store_path(project.data_root, "trajectory", scene))
     passages, num_flights = bp.flights_of(cfg, trajectory)
     samples = []
     for weather in cfg.weathers:
-        kpis = xr.open_zarr(stores.store_path(project.data_root, "kpis", scene, weather))
-        frames = xr.open_datatree(stores.store_path(project.data_root, "sensor_frames", scene, weather), engine="zarr")
+        kpis = stores.open_store(stores.store_path(project.data_root, "kpis", scene, weather))
+        frames = stores.open_store(stores.store_path(project.data_root, "sensor_frames", scene, weather), tree=True)
         samples.append(bp.load_samples(cfg, weather, kpis, frames[f"{st.base_station}/{st.camera}"].to_dataset(),
                                        frames[f"{st.platform}/{st.gps}"].to_dataset(), passages))
     train, test = bp.split_flights(num_flights, st.test_fraction, st.seed)

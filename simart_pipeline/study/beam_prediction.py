@@ -361,14 +361,20 @@ def run_study(samples: list[WeatherSamples], train_flights: np.ndarray, test_fli
 
 
 # --- loading from the stores ----------------------------------------------------------------------
-def flights_of(cfg, trajectory) -> tuple[np.ndarray, np.ndarray]:
+def num_flights(cfg) -> int:
+    """The study UAV's flights: the legs of its waypoint trajectory."""
+    p = next(q for q in cfg.platforms if q.name == cfg.beam_study.platform)
+    return len(p.trajectory.waypoints_m) - 1
+
+
+def flights_of(cfg, trajectory) -> tuple[np.ndarray, int]:
     """(passage times of the interior waypoints in ns, number of flights) of the study's UAV."""
     st = cfg.beam_study
     p = next(q for q in cfg.platforms if q.name == st.platform)
     pos = trajectory["position_m"].sel(platform=st.platform).values
     passages = waypoint_passage_times(trajectory["time"].values, pos, np.asarray(p.trajectory.waypoints_m),
                                       p.trajectory.waypoint_tolerance_m)
-    return passages, len(p.trajectory.waypoints_m) - 1
+    return passages, num_flights(cfg)
 
 
 def load_samples(cfg, weather: str, kpis, camera, gps, passages_ns: np.ndarray) -> WeatherSamples:
