@@ -5,7 +5,8 @@
 On one scene (default: the demo), measured side by side in one process after a warm-up of each:
 
 - sensing: every rendered camera and LiDAR with the scene's actors and without any (bodies off),
-  seconds per frame and the ratio;
+  seconds per frame and the ratio, all together in the first weather and one sensor at a time in
+  every weather of the scene (frames per second per sensor and weather);
 - ray tracing: the ``cirs`` trace of the whole session with actors and without, seconds per radio
   instant, solver calls and the ratio;
 - the skip rule (``ray_tracing.actor_max_excess_path_m``): on the scene plus ``--parked`` parked
@@ -57,6 +58,50 @@ def _with_parked_cars(cfg, geom, n: int):
     return cfg.model_copy(update={"static_actors": cfg.static_actors + tuple(cars)})
 
 
+def _only_sensor(cfg, device: str, sensor: str):
+    """``cfg`` keeping one camera or LiDAR (``device``/``sensor``) and no other rendered sensor."""
+    def keep(d):
+        return d.model_copy(update={"sensors": tuple(s for s in d.sensors if s.kind not in ("camera", "lidar")
+                                                     or (d.name, s.name) == (device, sensor))})
+    return cfg.model_copy(update={"platforms": tuple(keep(p) for p in cfg.platforms),
+                                  "base_stations": tuple(keep(b) for b in cfg.base_stations)})
+
+
+def _rendered_frames(tree, stream: str | None = None) -> int:
+    return sum(node.sizes["time"] for node in tree.subtree
+               if node.has_data and ("rgb" in node.data_vars or "range_m" in node.data_vars)
+               and (stream is None or node.path == stream))
+
+
+def _sensing(scene_meshes, traj, cfg, bare, scene_dir) -> dict:
+    """Every rendered sensor in every weather of the scene, with the actors and without (bodies
+    off), one sensor at a time: ms per frame, frames per second and the with/without ratio; and all
+    sensors together in the first weather (the ``sensor_frames`` asset's work)."""
+    rendered = [(d.name, s.name, s.kind) for d in (*cfg.platforms, *cfg.base_stations) for s in d.sensors
+                if s.kind in ("camera", "lidar")]
+    weather0 = cfg.weathers[0]
+    with_s, tree = _timed(lambda: render_sensor_frames(scene_meshes, traj, cfg, weather0, scene_dir))
+    without_s, _ = _timed(lambda: render_sensor_frames(scene_meshes, traj, bare, weather0, scene_dir))
+    n_frames = _rendered_frames(tree)
+    out = {"camera_and_lidar_streams": len(rendered), "frames": n_frames, "weather": weather0,
+           "with_actors_s": round(with_s, 3), "without_actors_s": round(without_s, 3),
+           "ms_per_frame_with": round(1e3 * with_s / max(n_frames, 1), 2),
+           "ms_per_frame_without": round(1e3 * without_s / max(n_frames, 1), 2),
+           "ratio": round(with_s / without_s, 3), "per_sensor": []}
+    for device, sensor, kind in rendered:
+        one, one_bare = _only_sensor(cfg, device, sensor), _only_sensor(bare, device, sensor)
+        for weather in cfg.weathers:
+            w_s, t = _timed(lambda: render_sensor_frames(scene_meshes, traj, one, weather, scene_dir))
+            wo_s, _ = _timed(lambda: render_sensor_frames(scene_meshes, traj, one_bare, weather, scene_dir))
+            n = max(_rendered_frames(t, f"/{device}/{sensor}"), 1)
+            out["per_sensor"].append({
+                "stream": f"/{device}/{sensor}", "kind": kind, "weather": weather, "frames": n,
+                "ms_per_frame_with": round(1e3 * w_s / n, 2), "ms_per_frame_without": round(1e3 * wo_s / n, 2),
+                "frames_per_s_with": round(n / w_s, 1), "frames_per_s_without": round(n / wo_s, 1),
+                "ratio": round(w_s / wo_s, 3)})
+    return out
+
+
 def _mean_placed(cfg, traj, scene_xml, scene_dir, threshold) -> float:
     """Actors that matter to a receiver at an instant under the skip rule, on average."""
     radio = RadioScene.from_config(scene_xml, cfg)
@@ -103,16 +148,7 @@ def main(argv=None) -> int:
         result = {"scene": cfg.name, "variant": variant,
                   "actors": [a.name for a in actors.scene_actors(cfg, scene_dir)]}
 
-        frames = sum(1 for d in (*cfg.platforms, *cfg.base_stations) for s in d.sensors if s.kind in ("camera", "lidar"))
-        with_s, tree = _timed(lambda: render_sensor_frames(scene_meshes, traj, cfg, "sunny", scene_dir))
-        without_s, _ = _timed(lambda: render_sensor_frames(scene_meshes, traj, bare, "sunny", scene_dir))
-        n_frames = sum(node.sizes["time"] for node in tree.subtree
-                       if node.has_data and ("rgb" in node.data_vars or "range_m" in node.data_vars))
-        result["sensing"] = {"camera_and_lidar_streams": frames, "frames": n_frames,
-                             "with_actors_s": round(with_s, 3), "without_actors_s": round(without_s, 3),
-                             "ms_per_frame_with": round(1e3 * with_s / max(n_frames, 1), 2),
-                             "ms_per_frame_without": round(1e3 * without_s / max(n_frames, 1), 2),
-                             "ratio": round(with_s / without_s, 3)}
+        result["sensing"] = _sensing(scene_meshes, traj, cfg, bare, scene_dir)
 
         def trace(c, max_excess="config"):
             if max_excess != "config":

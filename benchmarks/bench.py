@@ -29,6 +29,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+from benchmarks import targets
+
 ROOT = Path(__file__).resolve().parents[1]
 OSM = ROOT.parent / "shared" / "data" / "osm"   # where benchmarks.osm_build and benchmarks.sensing read
 PACKAGES = ("sionna-rt", "mitsuba", "drjit", "dagster", "numpy", "sionna", "torch")
@@ -99,6 +101,9 @@ def _sum_actors(r):
              f"ray tracing (`cirs`) with actors / without: **{rt.get('ratio')}x** ({rt.get('ms_per_instant_with')} / "
              f"{rt.get('ms_per_instant_without')} ms per instant; {rt.get('solver_calls_with')} / "
              f"{rt.get('solver_calls_without')} solver calls)"]
+    for p in se.get("per_sensor", []):
+        lines.append(f"{p['stream']} ({p['kind']}), {p['weather']}: {p['frames_per_s_with']} frames/s with actors, "
+                     f"{p['frames_per_s_without']} without ({p['ratio']}x the time)")
     for t in sk.get("thresholds", []):
         e = t["link_gain_error_db"]
         lines.append(f"skip rule at {t['actor_max_excess_path_m']} m ({sk.get('parked_cars')} parked cars): "
@@ -375,6 +380,7 @@ def run_all(out: Path, quick: bool, only: list[str] | None = None, benchmarks: l
                "started_utc": started.isoformat(timespec="seconds"),
                "total_wall_s": round(time.perf_counter() - t0, 1), "machine": machine(),
                "benchmarks": records}
+    results["targets"] = targets.evaluate(results)
     write(out, results, benchmarks)
     return results
 
@@ -404,6 +410,8 @@ def report_md(results: dict, benchmarks: list[Bench] | None = None) -> str:
         why = (r["reason"] or "").splitlines()[0] if r["reason"] else ""
         status = {"ok": "ok", "failed": "**FAILED**", "skipped": "**SKIPPED**"}[r["status"]]
         lines.append(f"| {r['name']} | {status} | {r['wall_s'] if r['wall_s'] is not None else '–'} | {why} |")
+    if "targets" in results:
+        lines += ["", "## Targets of every issue", "", targets.table_md(results["targets"]).rstrip()]
     for r in recs:
         lines += ["", f"## {r['name']}: {r['title']}", ""]
         if r["status"] == "skipped":

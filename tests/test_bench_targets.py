@@ -1,0 +1,90 @@
+"""The targets table of `simart bench` (benchmarks.targets) and the actors benchmark's per-sensor
+configurations. No benchmark is run and no wall time is asserted."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from benchmarks import actors, bench, targets
+from simart_pipeline.config import load_scene_config
+
+DEMO = Path(__file__).resolve().parents[1] / "scenes" / "demo"
+
+
+def _bench(mode: str, **by_name) -> dict:
+    return {"mode": mode, "total_wall_s": 500.0,
+            "benchmarks": [{"name": n, "status": "ok", "results": r, "reason": None} for n, r in by_name.items()]}
+
+
+def _row(rows, issue, fragment):
+    (row,) = [r for r in rows if r["issue"] == issue and fragment in r["target"]]
+    return row
+
+
+def test_targets_judge_each_bound_both_ways():
+    t_le = targets.Target(1, "a <= 2", "x", lambda r: r["v"], "<=", 2.0)
+    t_ge = targets.Target(1, "a >= 2", "x", lambda r: r["v"], ">=", 2.0)
+    for v, le, ge in ((1.0, True, False), (2.0, True, True), (3.0, False, True), (float("inf"), False, True),
+                      (float("nan"), False, False)):
+        rows = targets.evaluate(_bench("full", x={"v": v}), [t_le, t_ge])
+        assert [r["met"] for r in rows] == [le, ge], v
+
+
+def test_targets_read_the_benchmarks_and_say_why_a_row_is_not_judged():
+    res = _bench("full",
+                 ckm_generator={"speedup_vs_per_cell_loop": 9.0},
+                 osm_build={"helsinki.osm.pbf": {"total_s": 1.5}},
+                 rerun={"steps": {"first run": {"wall_s": 100.0},
+                                  "unchanged rerun": {"ratio_to_first_wall": 0.05, "ratio_to_first_in_process": 0.03}}})
+    res["benchmarks"].append({"name": "sensing", "status": "skipped", "results": None, "reason": "no OSM extract"})
+    rows = targets.evaluate(res)
+    assert _row(rows, 7, "CKM generator")["met"] is False and _row(rows, 7, "CKM generator")["figure"] == 9.0
+    assert _row(rows, 3, "Helsinki")["met"] is True
+    assert _row(rows, 15, "whole command")["met"] is True
+    assert _row(rows, 15, "excluding start-up")["met"] is False
+    assert _row(rows, 2, "demo")["met"] is True
+    camera = _row(rows, 6, "camera")
+    assert camera["met"] is None and "skipped" in camera["why"]
+    # a benchmark that did not run, a mode the row is not judged in, a target nothing measures yet
+    assert "not run" in _row(rows, 20, "`cirs` asset")["why"]
+    assert _row(rows, 20, "--quick` fits")["met"] is None and _row(rows, 20, "(full) fits")["met"] is True
+    unmeasured = _row(rows, 15, "sequential")
+    assert unmeasured["met"] is False and unmeasured["why"].startswith("not measured")
+    # every target appears, judged or not
+    assert len(rows) == len(targets.TARGETS)
+
+
+def test_quick_run_does_not_judge_targets_named_for_the_full_scene():
+    res = _bench("quick", rerun={"steps": {"first run": {"wall_s": 30.0},
+                                           "unchanged rerun": {"ratio_to_first_wall": 0.5,
+                                                               "ratio_to_first_in_process": 0.5}}})
+    row = _row(targets.evaluate(res), 15, "whole command")
+    assert row["met"] is None and row["figure"] == 0.5 and "quick" in row["why"]
+
+
+def test_report_carries_the_targets_table():
+    res = _bench("full", ckm_generator={"speedup_vs_per_cell_loop": 12.0})
+    res.update(command="simart bench --out X", started_utc="2026-11-25T00:00:00+00:00",
+               machine={"cpu": "cpu", "cores": 2, "memory_gib": 24, "os": "linux", "python": "3.11", "packages": {},
+                        "git_commit": "abc", "git_dirty": False})
+    for r in res["benchmarks"]:
+        r.update(title=r["name"], wall_s=1.0, command="c", report=None, plots=[], prepare_s=None)
+    res["targets"] = targets.evaluate(res)
+    md = bench.report_md(res)
+    assert "## Targets of every issue" in md
+    assert "| 7 | CKM generator >= 10x a loop of one PathSolver call per cell | 12 | >= 10 x | met |" in md
+
+
+def test_only_sensor_keeps_exactly_one_rendered_sensor():
+    cfg = load_scene_config(DEMO)
+    rendered = [(d.name, s.name) for d in (*cfg.platforms, *cfg.base_stations) for s in d.sensors
+                if s.kind in ("camera", "lidar")]
+    others = sum(1 for d in (*cfg.platforms, *cfg.base_stations) for s in d.sensors if s.kind not in ("camera", "lidar"))
+    assert len(rendered) >= 2
+    for device, sensor in rendered:
+        one = actors._only_sensor(cfg, device, sensor)
+        kept = [(d.name, s.name) for d in (*one.platforms, *one.base_stations) for s in d.sensors
+                if s.kind in ("camera", "lidar")]
+        assert kept == [(device, sensor)]
+        assert sum(1 for d in (*one.platforms, *one.base_stations) for s in d.sensors
+                   if s.kind not in ("camera", "lidar")) == others
