@@ -253,9 +253,11 @@ def machine() -> dict:
     except (OSError, subprocess.SubprocessError):
         commit, dirty = None, None
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    from simart_pipeline.engine import cuda_available
+
     return {"cpu": cpu, "cores": cores, "memory_gib": mem, "os": platform.platform(),
             "python": platform.python_version(), "packages": versions, "git_commit": commit,
-            "git_dirty": dirty}
+            "git_dirty": dirty, "cuda_gpu": cuda_available()}
 
 
 # --- running -------------------------------------------------------------------------------------
@@ -404,6 +406,9 @@ def report_md(results: dict, benchmarks: list[Bench] | None = None) -> str:
              f"`{results['command']}`, started {results['started_utc']}, {results['total_wall_s']} s in all.", "",
              f"Machine: {m['cpu']}, {m['cores']} cores, {m['memory_gib']} GiB, {m['os']}; Python {m['python']}; "
              f"{pk}; commit {m['git_commit'] or 'unknown'}{' (with uncommitted changes)' if m['git_dirty'] else ''}.",
+             "", "GPU: " + ("a CUDA device is present; Mitsuba's `cuda` variant ran where a benchmark uses it."
+                           if m.get("cuda_gpu") else "none on this machine, so the CUDA variant was not measured "
+                           "(no CPU/GPU ratio)."),
              "", f"**{count['ok']} ran, {count['failed']} failed, {count['skipped']} skipped.**", "",
              "| benchmark | status | wall (s) | why |", "|---|---|---|---|"]
     for r in recs:
