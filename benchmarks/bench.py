@@ -443,7 +443,7 @@ def report_md(results: dict, benchmarks: list[Bench] | None = None) -> str:
             lines += [""] + [f"- {f}" for f in figs]
         for p in r["plots"]:
             if not r["report"] or Path(p).name not in r["report"]:
-                lines.append(f"- plot: `{p}`")
+                lines += ["", f"![{Path(p).stem}]({p})"]
     return "\n".join(lines) + "\n"
 
 
@@ -453,8 +453,61 @@ def write(out: Path, results: dict, benchmarks: list[Bench] | None = None) -> No
     (out / "report.md").write_text(report_md(results, benchmarks))
 
 
+DOC_INTRO = """\
+# Benchmarks: run time against error, in one report
+
+This page is the report of one `simart bench` run, written by `simart bench --publish DIR --doc
+docs/benchmarks.md` from that run's `DIR/results.json`; its plots are copied into `{assets}/`.
+Reproduce it from a source checkout:
+
+```
+simart bench --out bench-full --doc docs/benchmarks.md   # every stage benchmark (about an hour on 2 cores)
+simart bench --quick --out bench-quick                   # smaller settings, about 10 minutes
+python -m benchmarks --quick --out bench-quick           # the same command
+simart bench --quick --out DIR --only raytracing_front   # some of them
+```
+
+Each benchmark runs in its own process, one after the other, and times itself: every figure below
+is a ratio or a curve measured side by side within one benchmark's run, on the machine named below.
+A benchmark that fails or runs past its time limit is reported as FAILED (exit status 1), one whose
+inputs or optional extra are missing as SKIPPED with why. The targets table lists every measurable
+target of the project's issues with its figure from this run, met or not; a target this run cannot
+measure says why. The module docstring of each `benchmarks/<name>.py` defines its figures exactly.
+
+"""
+
+
+def publish(out: Path, doc: Path) -> list[Path]:
+    """Write the report of the run in ``out`` as the document ``doc``, its plots copied beside it
+    into ``<doc without suffix>/`` and its links pointed there; returns the copied plots."""
+    results = json.loads((out / "results.json").read_text())
+    assets = doc.with_suffix("")
+    copied = []
+    for r in results["benchmarks"]:
+        for p in r.get("plots", []):
+            dest = assets / p
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(out / p, dest)
+            copied.append(dest)
+    md = report_md(results)
+    # image links in the report are relative to DIR; in the doc, relative to the doc's folder
+    md = re.sub(r"(!\[[^\]]*\]\()(?!https?:|/)", lambda m: m.group(1) + assets.name + "/", md)
+    md = re.sub(r"^(#+)", r"#\1", md, flags=re.M)   # the report's headings one level below the page's
+    doc.write_text(DOC_INTRO.format(assets=assets.name) + md)
+    return copied
+
+
 def run_from_args(args) -> int:
+    if getattr(args, "publish", None) is not None:
+        if args.doc is None:
+            raise SystemExit("--publish needs --doc PATH")
+        copied = publish(args.publish, args.doc)
+        print(f"wrote {args.doc} and {len(copied)} plots under {args.doc.with_suffix('')}")
+        return 0
     res = run_all(args.out, args.quick, args.only)
     print(f"wrote {args.out / 'report.md'} and {args.out / 'results.json'} in {res['total_wall_s']} s")
+    if getattr(args, "doc", None) is not None:
+        publish(args.out, args.doc)
+        print(f"wrote {args.doc}")
     return 1 if any(r["status"] == "failed" for r in res["benchmarks"]) else 0
 

@@ -387,6 +387,10 @@ def cmd_bench(args) -> int:
         sys.path.insert(0, str(root))
     from benchmarks import bench
 
+    if args.publish is None and args.out is None:
+        raise CliError("bench: give --out DIR (or --publish DIR --doc PATH)")
+    if args.publish is not None and (args.doc is None or not (args.publish / "results.json").is_file()):
+        raise CliError(f"{args.publish}: --publish needs --doc PATH and a finished run (its results.json)")
     unknown = sorted(set(args.only or ()) - {b.name for b in bench.BENCHMARKS})
     if unknown:
         raise CliError(f"--only: unknown benchmark(s) {', '.join(unknown)}; known: "
@@ -635,8 +639,13 @@ def build_parser() -> argparse.ArgumentParser:
                     "benchmark). A failed benchmark is reported as failed (exit status 1); one whose inputs are "
                     "missing is reported as skipped, with why. Same as `python -m benchmarks`. Needs a source "
                     "checkout. docs/benchmarks.md")
-    bn.add_argument("--out", required=True, type=Path, metavar="DIR",
+    bn.add_argument("--out", type=Path, metavar="DIR",
                     help="folder for report.md, results.json and one folder per benchmark")
+    bn.add_argument("--doc", type=Path, metavar="PATH",
+                    help="also write the report as this markdown page, its plots copied beside it into PATH "
+                         "without its suffix (docs/benchmarks.md: docs/benchmarks/)")
+    bn.add_argument("--publish", type=Path, metavar="DIR",
+                    help="run nothing: write --doc from the finished run in DIR")
     bn.add_argument("--quick", action="store_true",
                     help="smaller settings: the whole command within about 10 minutes on 2 cores (full: an hour)")
     bn.add_argument("--only", nargs="+", metavar="NAME", help="only these benchmarks (default: all)")

@@ -165,3 +165,28 @@ def test_link_sys_measures_the_numpy_side_without_sionna_sys(tmp_path):
     except ImportError:
         has_sys = False
     assert ("sionna_sys" in r) != has_sys
+
+
+def test_publish_writes_the_page_with_its_plots_beside_it(tmp_path, capsys):
+    out = tmp_path / "run"
+    (out / "rt").mkdir(parents=True)
+    png = b"\x89PNG\r\n\x1a\nfake"
+    (out / "rt" / "front.png").write_bytes(png)
+    rec = {"name": "rt", "title": "Ray tracing", "status": "ok", "reason": None, "wall_s": 1.0, "returncode": 0,
+           "command": "benchmarks.rt", "results": {"x": 1}, "report": "# Front\n\n![front](front.png)\n",
+           "plots": ["rt/front.png"]}
+    results = {"mode": "full", "command": "simart bench --out run", "started_utc": "now", "total_wall_s": 1.0,
+               "machine": bench.machine(), "benchmarks": [rec]}
+    bench.write(out, results, [])
+    doc = tmp_path / "docs" / "benchmarks.md"
+    doc.parent.mkdir()
+    assert cli.main(["bench", "--publish", str(out), "--doc", str(doc)]) == 0
+    md = doc.read_text()
+    assert md.startswith("# Benchmarks: run time against error")
+    assert "## Benchmarks (full)" in md and "#### Front" in md
+    assert "![front](benchmarks/rt/front.png)" in md
+    assert (tmp_path / "docs" / "benchmarks" / "rt" / "front.png").read_bytes() == png
+    # a run that does not exist is refused with one line naming it, and nothing is written
+    other = tmp_path / "other.md"
+    assert cli.main(["bench", "--publish", str(tmp_path / "nope"), "--doc", str(other)]) == 1
+    assert "nope" in capsys.readouterr().err and not other.exists()
