@@ -488,17 +488,19 @@ def write_rays_vs_error_plot(curves: dict[str, dict[str, list[dict]]], path: Pat
     import matplotlib.pyplot as plt
 
     fig, (ax_gain, ax_cov) = plt.subplots(1, 2, figsize=(12, 4.5))
-    for scene, solvers in curves.items():
-        for solver, points in solvers.items():
+    for colour, (scene, solvers) in enumerate(curves.items()):
+        for style, (solver, points) in zip(("o-", "s--", "^:"), solvers.items()):
             pts = [p for p in points if "warm_s" in p]
             t = [p["warm_s"] for p in pts]
             for ax, ys in ((ax_gain, [p["vs_3x3"]["path_gain_db"]["p50"] for p in pts]),
                            (ax_cov, [p["coverage_pct"] for p in pts])):
                 ys = [np.nan if v is None else v for v in ys]
-                ax.plot(t, ys, "o-", label=f"{scene}, {solver}")
+                ax.plot(t, ys, style, color=f"C{colour}", label=f"{scene}, {solver}")
                 for ti, yi, p in zip(t, ys, pts):
                     ax.annotate(f"{p['rays']:.0e}", (ti, yi), textcoords="offset points", xytext=(4, 4), fontsize=7)
     ax_gain.set(xscale="log", xlabel="warm time (s)", ylabel="path gain |error| p50 vs PathSolver 3x3 (dB)")
+    ax_gain.set_yscale("symlog", linthresh=0.01)  # errors span 0.01 .. 1 dB; symlog keeps a 0
+    ax_gain.set_ylim(bottom=0)
     ax_cov.set(xscale="log", xlabel="warm time (s)", ylabel="coverage (% of cells at least half outdoor)")
     for ax in (ax_gain, ax_cov):
         ax.grid(True, which="both", alpha=0.3)
