@@ -87,6 +87,21 @@ def _sum_ckm_generator(r):
             _largest_differences(r.get("max_abs_difference_on_looped_cells") or {})]
 
 
+def _sum_ckm_solver(r):
+    lines = []
+    for name, sc in (r.get("scenes") or {}).items():
+        rm = sc.get("radio_map_solver", {})
+        agree = _get(rm, "at_one_pass_rays", "path_gain_agreement_with_one_pass", "abs_diff_db", default={})
+        lines += [f"{name}: one-pass {_get(sc, 'one_pass', 'warm_s')} s warm, **{sc.get('speedup_vs_per_cell_loop')}x** "
+                  f"one PathSolver call per cell; path gain p50 {_get(sc, 'errors_vs_3x3_points', 'path_gain_db', 'p50')} "
+                  "dB against PathSolver's 3 x 3 points",
+                  f"{name}: one-pass / RadioMapSolver time at the same rays **{rm.get('one_pass_over_radio_map_time')}x**, "
+                  f"path gain |difference| p50 / p95 {agree.get('p50')} / {agree.get('p95')} dB",
+                  f"{name}: targets " + ", ".join(f"{k} {'met' if v else 'NOT met' if v is False else 'n/a'}"
+                                                  for k, v in (sc.get("targets_met") or {}).items())]
+    return lines
+
+
 def _largest_differences(worst: dict) -> str:
     nums = {k: v for k, v in worst.items() if isinstance(v, (int, float))}
     nonzero = sorted(((k, v) for k, v in nums.items() if v), key=lambda kv: -kv[1])
@@ -191,7 +206,7 @@ BENCHMARKS: list[Bench] = [
           summary=_sum_ckm_generator),
     Bench("ckm_solver", "One-pass CKM solver against PathSolver (Sionna's bundled scenes)",
           lambda q, o: ["--out", str(o)] + (["--quick", "--scenes", "street_canyon"] if q else []),
-          timeout_s=(200, 1500)),
+          timeout_s=(240, 1500), summary=_sum_ckm_solver),
     Bench("actors", "Moving actors: cost and the skip rule's error",
           lambda q, o: ["--out", str(o / "results.json")] + (["--parked", "2", "--thresholds", "200", "1"] if q else []),
           timeout_s=(300, 900), summary=_sum_actors),

@@ -123,3 +123,41 @@ def test_scene_copy_edits_only_the_copy(tmp_path):
     assert "Camera" not in kinds and "Lidar" in kinds
     assert "Camera" in [type(s).__name__ for p in load_scene_config(TINY).platforms for s in p.sensors]
     assert np.isfinite(harness.summary([0.3, 0.1, 0.2])["median_s"])
+
+
+def test_map_agreement_counts_cells_and_percentiles_of_the_difference():
+    from benchmarks.ckm_solver import map_agreement
+
+    a = np.array([[0.0, 1.0, 2.0], [3.0, np.nan, 5.0]])
+    b = np.array([[0.0, 2.0, 4.0], [np.nan, 7.0, 8.0]])  # |a - b| on the shared cells: 0, 1, 2, 3
+    r = map_agreement(a, b)
+    assert (r["cells_a"], r["cells_b"], r["cells_both"]) == (5, 5, 4)
+    assert r["abs_diff_db"] == {"p50": 1.5, "p95": pytest.approx(2.85), "n": 4}
+    assert map_agreement(a, np.full_like(a, np.nan))["abs_diff_db"] == {"p50": None, "p95": None, "n": 0}
+
+
+def test_rays_vs_error_plot_is_a_png_and_skipped_points_are_left_out(tmp_path):
+    from benchmarks.ckm_solver import write_rays_vs_error_plot
+
+    def point(rays, s, err):
+        return {"rays": rays, "warm_s": s, "coverage_pct": 90.0, "vs_3x3": {"path_gain_db": {"p50": err}}}
+
+    curves = {"canyon": {"one_pass": [point(10**5, 0.1, 2.0), point(10**6, 1.0, None), {"rays": 10**8, "skipped": "x"}],
+                         "radio_map_solver": [point(10**5, 0.05, 3.0)]}}
+    path = write_rays_vs_error_plot(curves, tmp_path / "ckm_rays_vs_error.png")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_sweep_skips_a_count_predicted_too_slow():
+    from benchmarks import ckm_solver
+
+    runs = []
+
+    def run(n):
+        runs.append(n)
+        return n, None, n * (ckm_solver.MAX_POINT_S / 10**6)  # 1e6 rays take MAX_POINT_S
+
+    points = ckm_solver._sweep([10**5, 10**6, 10**7], run, lambda res: {"echo": res})
+    assert runs == [10**5, 10**6]
+    assert points[1]["echo"] == 10**6 and points[1]["first_call_s"] is None
+    assert points[2]["rays"] == 10**7 and "skipped" in points[2]
