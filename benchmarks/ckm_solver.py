@@ -7,9 +7,10 @@ For Sionna RT's street canyon and Munich (both shipped with sionna-rt), a 2 m gr
 
 - the one-pass solver (:func:`simart_pipeline.ckm.one_pass.one_pass_moments`) fills every cell;
 - PathSolver (deterministic, ``samples_per_src`` 1e5, iso V receiver) traces the centres and 3 x 3
-  points of a random sample of cells that lie wholly outside buildings and that the one-pass
-  solver reaches; both reduce to the same moments (:mod:`simart_pipeline.ckm.moments`), so the
-  layers compare by definition;
+  points of a random sample of cells that lie wholly outside buildings and where the one-pass
+  layers hold values (at least ``ckm.min_hits_for_power`` ray hits; fewer count as not covered);
+  both reduce to the same moments (:mod:`simart_pipeline.ckm.moments`), so the layers compare by
+  definition;
 - errors ``|one-pass - PathSolver|``: p50 / p95 of path gain (dB), ToA, RMS delay spread (ns), the
   four angular spreads (deg), LoS and best-beam agreement (%), against the centre and against the
   3 x 3 points pooled (their paths together, each point weighted 1/9: the gain is their mean);
@@ -182,6 +183,9 @@ def _layers_at(m: op.OnePassMoments, pick: np.ndarray) -> dict[str, np.ndarray]:
     fast = m.layers()
     at = {k: v[0].ravel()[pick] for k, v in fast.items() if v.ndim == 3}
     at["best_beam"] = fast["best_beam"][0].ravel()[pick]
+    # A cell reached by fewer than min_hits_for_power rays holds no gain, ToA, LoS or beam (best
+    # beam -1): it is not covered, and must not be compared as a cell with a value.
+    at["has_path"] = at["enough_hits"]
     stable = at["count"] >= m.min_count_for_spread
     for k in ("rms_delay_spread_s",) + SPREADS:
         at[k] = np.where(stable, at[k], np.nan)
@@ -306,11 +310,11 @@ def run_scene(name: str, spec: dict, num_rays: int, compare_cells: int, loop_cel
     fast = m.layers()
     outdoor = m.outdoor_fraction[0] == 1.0
     eligible = ~m.masked[0]
-    covered = fast["has_path"][0] & eligible
+    covered = fast["enough_hits"][0] & eligible
     n_cells, n_outdoor = nx * ny, int((m.outdoor_fraction[0] > 0).sum())
 
     rng = np.random.default_rng(seed)
-    pool = np.flatnonzero((outdoor & fast["has_path"][0]).ravel())
+    pool = np.flatnonzero((outdoor & fast["enough_hits"][0]).ravel())
     pick = np.sort(rng.choice(pool, min(compare_cells, pool.size), replace=False))
     X, Y = np.meshgrid(x, y)
     cells_xyz = np.stack([X.ravel(), Y.ravel(), np.full(X.size, HEIGHT_M)], -1)
@@ -399,7 +403,8 @@ def report(results: dict) -> str:
         f"one-pass {s['rays']:.0e} rays with 64 DFT beams; PathSolver deterministic, "
         f"{SAMPLES_PER_SRC:.0e} samples, iso V receiver (the one-pass solver projects on V likewise).", "",
         "Errors |one-pass - PathSolver|, p50 / p95, over a random sample of cells wholly outside "
-        "buildings that the one-pass solver reaches; spreads where the cell has at least "
+        "buildings where the one-pass layers hold values (at least min_hits_for_power ray hits); spreads "
+        "where the cell has at least "
         f"{s['min_hits_for_spread']} ray hits. '3x3' pools the paths of 3 x 3 points inside the cell "
         "(gain: their mean), 'centre' is the cell centre alone. Best-beam loss: the reference's gain of "
         "its own best beam minus its gain of the one-pass best beam (0 where they agree).", "",

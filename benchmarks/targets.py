@@ -59,6 +59,10 @@ def _ckm_solver(scene: str, *keys) -> Figure:
     return lambda r: _num(_at(r, "scenes", scene, *keys))
 
 
+# RadioMapSolver at the one-pass's ray count against the one-pass map, |dB| over cells both cover
+_RMS_AGREEMENT = ("radio_map_solver", "at_one_pass_rays", "path_gain_agreement_with_one_pass", "abs_diff_db")
+
+
 def _ckm_solver_targets() -> list[Target]:
     rows = []
     for scene in ("street_canyon", "munich"):
@@ -73,10 +77,10 @@ def _ckm_solver_targets() -> list[Target]:
                    "ckm_solver", _ckm_solver(scene, "errors_vs_3x3_points", "best_beam_agreement_pct"),
                    ">=", 95, "%"),
             Target(8, f"one-pass CKM {scene}: path gain against RadioMapSolver, p95 <= 0.1 dB where both have rays",
-                   "ckm_solver", _ckm_solver(scene, "radio_map_solver", "path_gain_vs_one_pass_db", "p95"),
+                   "ckm_solver", _ckm_solver(scene, *_RMS_AGREEMENT, "p95"),
                    "<=", 0.1, "dB"),
             Target(17, f"one-pass CKM {scene}: path gain against RadioMapSolver, p50 <= 0.1 dB", "ckm_solver",
-                   _ckm_solver(scene, "radio_map_solver", "path_gain_vs_one_pass_db", "p50"), "<=", 0.1, "dB"),
+                   _ckm_solver(scene, *_RMS_AGREEMENT, "p50"), "<=", 0.1, "dB"),
             Target(17, f"one-pass CKM {scene}: time within 2x of RadioMapSolver's on the same grid", "ckm_solver",
                    _ckm_solver(scene, "radio_map_solver", "one_pass_over_radio_map_time"), "<=", 2.0, "x"),
         ]
