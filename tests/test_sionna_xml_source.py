@@ -98,6 +98,7 @@ def test_triangles_bounds_and_classes_equal_the_input_shapes(tiny):
     _, _, m, report = tiny
     assert report["shapes"] == 4 and report["visual_triangles"] == sum(len(s.faces) for s, _ in SHAPES.values())
     assert report["radio_triangles"] == report["visual_triangles"]  # no decimation by default
+    assert report["hausdorff_max_m"] == 0.0 and report["hausdorff_samples"] == 0  # so nothing to measure
     want = {"tower": "building", "hall": "building", "car_1": "vehicle", "floor": "ground"}
     for i, (name, (mesh, _)) in enumerate(SHAPES.items()):
         sel = m.face_instance == i + 1  # instance id: the shape's position in the file

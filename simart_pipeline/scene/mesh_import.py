@@ -310,8 +310,12 @@ def build_from_imported(imp: ImportedMesh, t0: float | None = None) -> tuple[Sce
         radio[key] = simplify.decimate(mesh, rules.decimation, rules.decimation_target_fraction,
                                        rules.sharp_edge_angle_deg)
     t2 = time.perf_counter()
-    dev = simplify.hausdorff_m(visual, trimesh.util.concatenate(list(radio.values())),
-                               samples=rules.hausdorff_samples, seed=rules.seed)
+    if rules.decimation == "none" and keep.all():  # the radio mesh is the visual mesh: no deviation
+        dev = {"samples": 0, **{f"{d}_{q}_m": 0.0 for d in ("visual_to_radio", "radio_to_visual", "hausdorff")
+                                for q in ("p95", "max")}}
+    else:
+        dev = simplify.hausdorff_m(visual, trimesh.util.concatenate(list(radio.values())),
+                                   samples=rules.hausdorff_samples, seed=rules.seed)
     t3 = time.perf_counter()
     meshes = SceneMeshes(visual, face_class, face_instance, radio)
     n_vis, n_radio = len(visual.faces), sum(len(m.faces) for m in radio.values())
