@@ -11,7 +11,7 @@ import pytest
 import trimesh
 import yaml
 
-from simart_pipeline import stores, versions
+from simart_pipeline import stores, validation, versions
 from simart_pipeline.config import ConfigError, SionnaXmlSource, load_scene_config
 from simart_pipeline.scene import meshes
 from simart_pipeline.scene.sionna_xml import (SionnaXmlError, build_from_sionna_xml, referenced_files,
@@ -307,6 +307,12 @@ def test_config_names_unknown_keys_classes_and_unsafe_paths(tmp_path):
     (d / "scene.yaml").write_text(yaml.safe_dump({**base, "source": {"kind": "sionna_xml", "path": "scene.xml"}}))
     cfg = load_scene_config(d)
     assert cfg.source.kind == "sionna_xml"
+    # simart validate reports a broken XML on one line naming scene.yaml, the XML and the problem
+    (d / "scene.xml").write_text((d / "scene.xml").read_text().replace('value="concrete"', 'value="unobtainium"'))
+    _, problems = validation.scene_problems(d)
+    assert problems == [f"{d / 'scene.yaml'}: source: cannot read the scene's source: {d / 'scene.xml'}: material "
+                        f"'concrete': unknown ITU material type 'unobtainium'; known: " + problems[0].split("known: ")[1]]
+    write_tiny_xml(d)
     # the scene XML and every mesh it names decide whether osm_extract is stale
     assert sorted(versions.source_files(cfg, "osm_extract", d)) == [
         "meshes/car_1.ply", "meshes/floor.ply", "meshes/hall.ply", "meshes/tower.ply", "scene.xml"]
