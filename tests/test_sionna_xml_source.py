@@ -125,6 +125,15 @@ def test_default_mapping_and_first_match_wins(tmp_path):
     assert cls == ["water", "road", "unlabeled", "unlabeled"]
 
 
+def test_up_axis_and_scale(tmp_path):
+    xml = write_tiny_xml(tmp_path)
+    m, _ = build_from_sionna_xml(xml, _src(up_axis="y", scale_m_per_unit=0.5), tmp_path)
+    tower = m.visual.vertices[np.unique(m.visual.faces[m.face_instance == 1])]
+    lo, hi = SHAPES["tower"][0].bounds  # (x, y, z) -> (x, -z, y), halved
+    np.testing.assert_allclose(tower.min(axis=0), 0.5 * np.array([lo[0], -hi[2], lo[1]]))
+    np.testing.assert_allclose(tower.max(axis=0), 0.5 * np.array([hi[0], -lo[2], hi[1]]))
+
+
 def test_footprints_come_from_the_obstacle_shapes(tiny):
     d, xml, _, _ = tiny
     geom = source_geometry_from_sionna_xml(xml, _src(), d, (48.0, 11.0, 500.0))
@@ -134,6 +143,17 @@ def test_footprints_come_from_the_obstacle_shapes(tiny):
     np.testing.assert_allclose(b[0].geometry.area, 15 * 15)
     assert b[1].height_m == pytest.approx(12.0) and b[0].radio_material == "xml-concrete"
     assert geom.origin == (48.0, 11.0, 500.0)
+
+
+def test_a_building_split_into_wall_and_roof_shapes_is_one_solid(tmp_path):
+    b = _box((0, 0, 0), (10, 6, 8))
+    nz = b.face_normals[:, 2]
+    wall, roof = b.submesh([np.flatnonzero(np.abs(nz) < 0.5)], append=True), b.submesh([np.flatnonzero(nz > 0.5)],
+                                                                                       append=True)
+    xml = write_tiny_xml(tmp_path, BSDFS, {"mesh-b-wall": (wall, "concrete"), "mesh-b-roof": (roof, "paint")})
+    fp = source_geometry_from_sionna_xml(xml, _src(), tmp_path).of_class("building")
+    assert len(fp) == 1 and fp[0].geometry.area == pytest.approx(60.0)  # the shadow, not two thin walls
+    assert fp[0].height_m == pytest.approx(8.0)
 
 
 # --- radio materials ----------------------------------------------------------------------------
