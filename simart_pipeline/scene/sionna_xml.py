@@ -255,6 +255,8 @@ def read_sionna_xml(xml: Path, src: SionnaXmlSource, scene_dir: Path) -> tuple[I
     names = _material_names(used)
     mats = {}
     for bid, name in names.items():
+        if bid not in bsdfs:
+            raise _fail(xml, f"material {bid!r}: no <bsdf> element of the scene or of a shape has this id")
         el = copy.deepcopy(bsdfs[bid])
         el.set("id", f"mat_{name}")
         for e in el.iter():  # one line: no indentation text
