@@ -208,8 +208,12 @@ def source_files(cfg: SceneConfig, asset: str, scene_dir: Path | None) -> dict[s
     if scene_dir is None:
         return {}
     names = []
-    if asset == "osm_extract" and cfg.source.kind in ("osm", "mesh"):
+    if asset == "osm_extract" and cfg.source.kind in ("osm", "mesh", "sionna_xml"):
         names.append(cfg.source.path)
+    if asset == "osm_extract" and cfg.source.kind == "sionna_xml":  # and the meshes it names
+        from simart_pipeline.scene.sionna_xml import referenced_files
+
+        names += referenced_files(Path(scene_dir), cfg.source.path)
     if asset == "trajectory":
         names += [p.trajectory.path for p in cfg.platforms if p.trajectory.kind == "replay"]
     if asset == "sensor_frames":

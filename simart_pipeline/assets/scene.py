@@ -40,7 +40,7 @@ def paired_meshes(context: dg.AssetExecutionContext, project: ProjectResource,
     out = build.paired_meshes_for_scene(cfg, project.scene_dir(scene), geometry.from_dataset(osm_extract.load()),
                                         provenance.attrs(cfg, "paired_meshes"))
     counts = out.meshes.counts()
-    report = out.scene_info.get("mesh_import", {})
+    report = out.scene_info.get("mesh_import") or out.scene_info.get("sionna_xml") or {}
     return versioned(context, project, "paired_meshes", out, {
         **{k: v for k, v in counts.items() if k not in ("radio_materials", "radio_triangles_per_mesh")},
         "radio_materials": ", ".join(counts["radio_materials"]),

@@ -30,7 +30,8 @@ from simart_pipeline.config.recordings import BAG_TIME_ORIGINS, RECORDING_FORMAT
 from simart_pipeline.config.scene import Clock, SceneConfig, load_scene_config, resolve_source_path
 from simart_pipeline.config.sensor_imports import ImportedStream, SensorImport
 from simart_pipeline.config.source import (MeshImportRules, MeshPartRule, MeshSource, OsmSource,
-                                           ProceduralSource, Source, WorldOrigin, check_mesh_labels)
+                                           ProceduralSource, SionnaXmlSource, Source, WorldOrigin,
+                                           check_mesh_labels)
 from simart_pipeline.config.trajectories import (RecordingFrame, ReplayTrajectory, TrajectorySource,
                                                  WaypointTrajectory)
 
@@ -40,7 +41,8 @@ __all__ = [
     "DEFAULT_LIMITS", "DEFAULT_TAG_MATERIALS", "DynamicLimits", "Gps", "ImportedStream", "Imu", "Lidar",
     "Link", "MAX_TILES_PER_AXIS", "Materials", "MeshImportRules", "MeshPartRule", "MeshSource", "Mount",
     "Ofdm", "OsmSource", "Platform", "ProceduralSource", "RECORDING_FORMATS", "RayTracing", "Receiver",
-    "RecordingFrame", "ReplayTrajectory", "SceneConfig", "Sensor", "SensorBase", "SensorImport", "Source",
+    "RecordingFrame", "ReplayTrajectory", "SceneConfig", "Sensor", "SensorBase", "SensorImport",
+    "SionnaXmlSource", "Source",
     "TrajectorySource", "Vec2", "Vec3", "WaypointTrajectory", "WorldOrigin", "check_mesh_labels",
     "load_scene_config", "recording_format", "resolve_source_path",
 ]

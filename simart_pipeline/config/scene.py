@@ -132,7 +132,7 @@ def _loc(loc: tuple) -> str:
     return ".".join(parts) or "(top level)"
 
 
-_UNION_TAGS = {"procedural", "osm", "mesh", "camera", "lidar", "imu", "gps", "waypoints", "replay"}
+_UNION_TAGS = {"procedural", "osm", "mesh", "sionna_xml", "camera", "lidar", "imu", "gps", "waypoints", "replay"}
 
 
 def load_scene_config(scene_dir: str | Path) -> SceneConfig:
@@ -172,7 +172,7 @@ def load_scene_config(scene_dir: str | Path) -> SceneConfig:
              for i, p in enumerate(cfg.platforms) if p.trajectory.kind == "replay"]
     named += [(f"sensor_imports.{i}.path", imp.path, "bag not found", True)
               for i, imp in enumerate(cfg.sensor_imports)]
-    if cfg.source.kind in ("osm", "mesh"):
+    if cfg.source.kind in ("osm", "mesh", "sionna_xml"):
         named.append(("source.path", cfg.source.path, "file not found", False))
     named += [(f"platforms.{i}.body.mesh", p.body.mesh, "file not found", False)
               for i, p in enumerate(cfg.platforms) if p.body.is_file]

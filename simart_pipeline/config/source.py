@@ -1,5 +1,5 @@
 """Scene source: the world origin and where the geometry comes from (procedural layout, an OSM
-extract, or a user mesh with its import rules)."""
+extract, a user mesh with its import rules, or a Mitsuba/Sionna scene XML with its radio materials)."""
 
 from __future__ import annotations
 
@@ -144,4 +144,86 @@ class MeshSource(_Model):
     _inside = field_validator("path")(classmethod(lambda cls, v: _inside_scene_dir(v, "the mesh")))
 
 
-Source = Annotated[Union[ProceduralSource, OsmSource, MeshSource], Field(discriminator="kind")]
+def _check_pattern(v: str) -> str:
+    if not v:
+        raise ValueError("an empty pattern matches nothing")
+    if v.startswith("re:"):
+        try:
+            re.compile(v[3:])
+        except re.error as exc:
+            raise ValueError(f"{v!r}: not a valid regular expression: {exc}") from None
+    return v
+
+
+def _word(*words: str) -> str:
+    """A pattern matching any of ``words`` as a whole word of a name (``mesh-car_3``, not ``Carlo``)."""
+    return f"re:(.*[^a-z])?({'|'.join(words)})([^a-z].*)?"
+
+
+# Shape id / material patterns -> semantic class, tried in order (docs/sionna-scenes.md).
+DEFAULT_XML_SEMANTIC_CLASSES: dict[str, str] = {
+    _word("floor", "ground", "terrain", "plane"): "ground",
+    _word("roads?", "streets?"): "road",
+    _word("cars?", "vehicles?", "trucks?", "bus"): "vehicle",
+    _word("trees?", "vegetation", "grass"): "vegetation",
+    _word("water", "river", "lake"): "water",
+}
+
+
+class SionnaXmlSource(_Model):
+    """A Mitsuba/Sionna RT scene XML (Sionna's bundled scenes, Blender exports), path relative to
+    the scene directory; its radio materials are kept (``docs/sionna-scenes.md``)."""
+
+    kind: Literal["sionna_xml"]
+    path: str
+    semantic_classes: dict[str, str] = Field(
+        default_factory=lambda: dict(DEFAULT_XML_SEMANTIC_CLASSES),
+        description="case-insensitive glob (or re:regex) -> semantic class, tried in order against "
+        "each shape's id, its BSDF's id and its ITU material type; the first match wins")
+    default_semantic_class: str = "building"
+    obstacle_classes: tuple[str, ...] = Field(
+        ("building",), description="semantic classes whose shapes become building footprints")
+    up_axis: Literal["y", "z"] = Field("z", description="the file's up axis (Sionna scenes: z)")
+    scale_m_per_unit: float = Field(1.0, gt=0, description="metres per file unit (Sionna scenes: m)")
+    merge_tolerance_m: float = Field(1e-4, gt=0, le=0.1, description="vertices closer than this merge")
+    decimation: Literal["none", "lossless"] = Field(
+        "none", description="radio mesh simplification: none (the shapes as they are) or lossless")
+    wall_sheet_thickness_m: float = Field(
+        0.1, gt=0, description="thickness given to open (sheet) walls in building footprints")
+    hausdorff_samples: int = Field(20_000, ge=100, le=10_000_000)
+
+    _inside = field_validator("path")(classmethod(lambda cls, v: _inside_scene_dir(v, "the scene XML")))
+
+    @field_validator("path")
+    @classmethod
+    def _xml_suffix(cls, v):
+        if not v.lower().endswith(".xml"):
+            raise ValueError(f"{v!r}: expected a Mitsuba scene file ending in .xml")
+        return v
+
+    @field_validator("semantic_classes")
+    @classmethod
+    def _classes(cls, v):
+        for pattern, name in v.items():
+            _check_pattern(pattern)
+            try:
+                check_mesh_labels(semantic_class=name)
+            except ValueError as exc:
+                raise ValueError(f"{pattern!r}: {exc}") from None
+        return v
+
+    @field_validator("default_semantic_class")
+    @classmethod
+    def _known_default(cls, v):
+        check_mesh_labels(semantic_class=v)
+        return v
+
+    @field_validator("obstacle_classes")
+    @classmethod
+    def _known_obstacles(cls, v):
+        for c in v:
+            check_mesh_labels(semantic_class=c)
+        return v
+
+
+Source = Annotated[Union[ProceduralSource, OsmSource, MeshSource, SionnaXmlSource], Field(discriminator="kind")]

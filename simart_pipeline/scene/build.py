@@ -74,6 +74,11 @@ def paired_meshes_for_scene(cfg: SceneConfig, scene_dir: Path | None, geom: Sour
 
         m, report = build_from_mesh(resolve_source_path(Path(scene_dir), cfg), cfg.source.rules)
         info["mesh_import"] = report
+    elif cfg.source.kind == "sionna_xml":  # the scene XML's shapes with their own radio materials
+        from simart_pipeline.scene.sionna_xml import build_from_sionna_xml
+
+        m, report = build_from_sionna_xml(resolve_source_path(Path(scene_dir), cfg), cfg.source, Path(scene_dir))
+        info["sionna_xml"] = report
     else:
         osm = cfg.source.kind == "osm"
         m = meshes.build_meshes(geom, storey_height_m=cfg.source.storey_height_m if osm else 3.0,

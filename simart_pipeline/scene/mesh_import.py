@@ -279,7 +279,13 @@ def build_from_mesh(source: Path, rules: MeshImportRules | None = None) -> tuple
         non-manifold faces, nothing left for the radio mesh
     """
     t0 = time.perf_counter()
-    imp = import_mesh(source, rules)
+    return build_from_imported(import_mesh(source, rules), t0)
+
+
+def build_from_imported(imp: ImportedMesh, t0: float | None = None) -> tuple[SceneMeshes, dict]:
+    """:func:`build_from_mesh` of parts already read and labelled (a mesh file's, or a scene XML's
+    shapes: :mod:`simart_pipeline.scene.sionna_xml`); ``t0``: when the import started."""
+    t0 = time.perf_counter() if t0 is None else t0
     rules = imp.rules
     cls_of = {c.name.lower(): c for c in SemanticClass}
     visual = trimesh.Trimesh(imp.vertices, imp.faces, process=False)
@@ -304,8 +310,12 @@ def build_from_mesh(source: Path, rules: MeshImportRules | None = None) -> tuple
         radio[key] = simplify.decimate(mesh, rules.decimation, rules.decimation_target_fraction,
                                        rules.sharp_edge_angle_deg)
     t2 = time.perf_counter()
-    dev = simplify.hausdorff_m(visual, trimesh.util.concatenate(list(radio.values())),
-                               samples=rules.hausdorff_samples, seed=rules.seed)
+    if rules.decimation == "none" and keep.all():  # the radio mesh is the visual mesh: no deviation
+        dev = {"samples": 0, **{f"{d}_{q}_m": 0.0 for d in ("visual_to_radio", "radio_to_visual", "hausdorff")
+                                for q in ("p95", "max")}}
+    else:
+        dev = simplify.hausdorff_m(visual, trimesh.util.concatenate(list(radio.values())),
+                                   samples=rules.hausdorff_samples, seed=rules.seed)
     t3 = time.perf_counter()
     meshes = SceneMeshes(visual, face_class, face_instance, radio)
     n_vis, n_radio = len(visual.faces), sum(len(m.faces) for m in radio.values())
@@ -371,25 +381,48 @@ def source_geometry_from_mesh(source: Path, rules: MeshImportRules | None = None
 
     :param origin: WGS84 latitude, longitude (deg) and altitude (m) of the ENU origin, recorded
     """
-    imp = import_mesh(source, rules)
+    return source_geometry_from_imported(import_mesh(source, rules), origin)
+
+
+def source_geometry_from_imported(imp: ImportedMesh, origin: tuple[float, float, float] | None = None,
+                                  join_parts: bool = False) -> SourceGeometry:
+    """:func:`source_geometry_from_mesh` of parts already read and labelled.
+
+    :param join_parts: find connected components across parts (a building split into a wall and a
+        roof shape is one), take an open component whose open edges all lie at its lowest height
+        (walls and a roof without a floor) for a solid, and a closed one for a solid whichever way
+        its faces point
+    """
     keep, _ = _radio_faces(imp)
     cls = imp.face_attr("semantic_class")
     mats = imp.face_attr("radio_material")
     out = SourceGeometry(origin=origin)
     sel = np.flatnonzero(keep & np.isin(cls, list(imp.rules.obstacle_classes)))
     if len(sel):
-        # Components within each part: key every vertex by its part.
+        # Components within each part (or across parts): key every vertex by its part (or by 0).
         f, part = imp.faces[sel], imp.face_part[sel]
-        keys = np.column_stack([np.repeat(part, 3), f.ravel()])
+        keys = np.column_stack([np.repeat(np.zeros_like(part) if join_parts else part, 3), f.ravel()])
         _, local = np.unique(keys, axis=0, return_inverse=True)
         local = local.reshape(-1, 3)
         n, label = simplify.face_components(local, int(local.max()) + 1)
         edges, count = simplify.edge_use_counts(local, label)
         open_comp = np.zeros(n, bool)
         open_comp[edges[count != 2, 0]] = True
+        if join_parts:  # open only where an open edge lies above the component's lowest height
+            z_of_local = np.empty(int(local.max()) + 1)
+            z_of_local[local.ravel()] = imp.vertices[f.ravel(), 2]
+            low = np.full(n, np.inf)
+            np.minimum.at(low, label, z_of_local[local].min(axis=1))
+            border = edges[count == 1]
+            top = z_of_local[border[:, 1:]].max(axis=1)
+            open_comp[:] = False
+            open_comp[border[top > low[border[:, 0]] + imp.rules.merge_tolerance_m, 0]] = True
         for k in range(n):
             fk = np.flatnonzero(label == k)
             tri = imp.vertices[f[fk]]
+            if join_parts and not open_comp[k] and \
+                    np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() < 0:
+                tri = tri[:, ::-1]  # a solid facing inwards (Sionna RT does not mind): a solid all the same
             p = imp.parts[int(part[fk[0]])]
             for poly in _component_footprints(tri, not open_comp[k], imp.rules.wall_sheet_thickness_m):
                 out.features.append(Feature("building", poly, p.part_id, height_m=float(tri[:, :, 2].max()),

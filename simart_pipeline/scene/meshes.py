@@ -51,6 +51,9 @@ class SceneMeshes:
     radio: dict[tuple[str, str], trimesh.Trimesh]  # (class name, radio material) -> mesh
     root: Path | None = None  # the directory it was loaded from, if any
     info: dict = field(default_factory=dict)  # scene.json, when loaded
+    # Radio materials the project does not define (a scene XML's own): name -> its <bsdf> element,
+    # whose id is ``mat_<name>``; written into radio/scene.xml as they are.
+    material_xml: dict[str, str] = field(default_factory=dict)
 
     @property
     def radio_materials(self) -> list[str]:
@@ -183,17 +186,21 @@ def build_meshes(geom: SourceGeometry, *, storey_height_m: float = 3.0,
 
 
 def radio_scene_xml(radio: dict[tuple[str, str], trimesh.Trimesh], thickness_m: float,
-                    frequency_hz: float | None = None, origin: tuple | None = None) -> str:
+                    frequency_hz: float | None = None, origin: tuple | None = None,
+                    material_xml: dict[str, str] | None = None) -> str:
     """Mitsuba 3 scene XML: one radio-material BSDF per material (:func:`radio.materials.bsdf_xml`),
     one PLY shape per (class, material); the world origin as a comment.
 
     :param frequency_hz: the carrier frequency, needed by materials that are not ITU ones (water,
         wet facades), whose permittivity and conductivity are written for it
+    :param material_xml: {material: its ``<bsdf id="mat_<material>">`` element}, written as it is,
+        for materials the project does not define (a scene XML's own, ``scene/sionna_xml.py``)
     """
     from simart_pipeline.radio import materials
 
+    material_xml = material_xml or {}
     mats = sorted({m for _, m in radio})
-    custom = [m for m in mats if m not in materials.ITU_MATERIALS]
+    custom = [m for m in mats if m not in materials.ITU_MATERIALS and m not in material_xml]
     if custom and frequency_hz is None:
         raise ValueError(f"radio materials {', '.join(custom)} need the carrier frequency")
     lines = ['<scene version="2.1.0">']
@@ -204,13 +211,17 @@ def radio_scene_xml(radio: dict[tuple[str, str], trimesh.Trimesh], thickness_m: 
     if frequency_hz is not None:
         lines.append(f"  <!-- radio materials at {frequency_hz!r} Hz -->")
     for mat in mats:
-        lines.append("  " + materials.bsdf_xml(mat, frequency_hz or 0.0, thickness_m))
+        if mat in material_xml:
+            lines.append("  " + material_xml[mat])
+        else:
+            lines.append("  " + materials.bsdf_xml(mat, frequency_hz or 0.0, thickness_m))
     for cls, mat in sorted(radio):
         name = f"{cls}_{mat}"
+        ref = f"mat_{mat}" if mat in material_xml else materials.bsdf_id(mat)
         lines += [f'  <shape type="ply" id="{escape(name)}">',
                   f'    <string name="filename" value="meshes/{escape(name)}.ply"/>',
                   '    <boolean name="face_normals" value="true"/>',
-                  f'    <ref id="{escape(materials.bsdf_id(mat))}" name="bsdf"/>',
+                  f'    <ref id="{escape(ref)}" name="bsdf"/>',
                   '  </shape>']
     lines.append("</scene>")
     return "\n".join(lines) + "\n"
@@ -230,7 +241,7 @@ def save(meshes: SceneMeshes, out: Path, scene_info: dict, thickness_m: float,
         frequency_hz = scene_info.get("carrier_frequency_hz")
     origin = scene_info.get("origin")
     origin_t = (origin["latitude_deg"], origin["longitude_deg"], origin["altitude_m"]) if origin else None
-    xml = radio_scene_xml(meshes.radio, thickness_m, frequency_hz, origin_t)
+    xml = radio_scene_xml(meshes.radio, thickness_m, frequency_hz, origin_t, meshes.material_xml)
     (out / "radio" / "meshes").mkdir(parents=True)
     (out / "visual").mkdir()
     for (cls, mat), mesh in meshes.radio.items():

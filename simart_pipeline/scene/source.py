@@ -18,4 +18,9 @@ def build_source_geometry(cfg: SceneConfig, scene_dir) -> SourceGeometry:
     if cfg.source.kind == "mesh":
         origin = (cfg.origin.latitude_deg, cfg.origin.longitude_deg, cfg.origin.altitude_m)
         return source_geometry_from_mesh(resolve_source_path(scene_dir, cfg), cfg.source.rules, origin)
+    if cfg.source.kind == "sionna_xml":
+        from simart_pipeline.scene.sionna_xml import source_geometry_from_sionna_xml
+
+        origin = (cfg.origin.latitude_deg, cfg.origin.longitude_deg, cfg.origin.altitude_m)
+        return source_geometry_from_sionna_xml(resolve_source_path(scene_dir, cfg), cfg.source, scene_dir, origin)
     raise NotImplementedError(f"scene {cfg.name}: unknown source kind {cfg.source.kind!r}")
