@@ -47,8 +47,9 @@ footprint and 5 m from the base station, seed 0):
   over cells both cover, cells covered by one only (% of cells unmasked in both) and best beam
   agreement (% of cells both cover).
 
-Writes ``DIR/results.json``, ``DIR/report.md`` and ``DIR/mesh_simplification.png`` (error against
-triangles and against warm trace time, every level labelled, the OSM default marked) and says
+Writes ``DIR/results.json``, ``DIR/report.md`` and ``DIR/mesh_simplification.png`` (strongest-path
+disagreement against triangles and against warm trace time, CKM gain error against triangles,
+every level labelled, the OSM default marked) and says
 whether the OSM default sits on the time / error front (:func:`raytracing_front.pareto_front`, the
 error being the strongest-path disagreement). ``--quick`` traces fewer receivers and levels.
 """
@@ -509,16 +510,19 @@ def plot(r: dict, path: Path) -> None:
     tri = [x["triangles"] for x in lv]
     t = [x["trace_warm_s"] for x in lv]
     err = [100 - (x["strongest_path"]["strongest_agree_pct"] or 0) for x in lv]
-    gain = [_num(x["links"]["path_gain_db"]["p95"]) for x in lv]
+    ckm = [_num(x["ckm"]["path_gain_db"]["p95"]) for x in lv]
     fig, axes = plt.subplots(1, 3, figsize=(18, 5.5), dpi=80)
     for ax, xs, ys, xl, yl in ((axes[0], tri, err, "triangles", "strongest path disagreement, % of links"),
                                (axes[1], t, err, "warm trace time, s", "strongest path disagreement, % of links"),
-                               (axes[2], tri, gain, "triangles", "link path gain |error| p95, dB")):
+                               (axes[2], tri, ckm, "triangles", "CKM path gain |error| p95, dB")):
         ys_plot = [y if np.isfinite(y) else np.nan for y in ys]
         ax.scatter(xs, ys_plot, c="C0")
+        spots: dict[tuple, list[str]] = {}  # levels on one spot share one label
         for x, y, lab in zip(xs, ys_plot, (v["label"] for v in lv)):
             if np.isfinite(y):
-                ax.annotate(lab, (x, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
+                spots.setdefault((round(x, 2), round(y, 2)), []).append(lab)
+        for k, ((x, y), labs) in enumerate(spots.items()):
+            ax.annotate(", ".join(labs), (x, y), textcoords="offset points", xytext=(4, 4 + 11 * (k % 3)), fontsize=8)
         i = next(k for k, v in enumerate(lv) if v["label"] == r["osm_default"])
         if np.isfinite(ys_plot[i]):
             ax.scatter([xs[i]], [ys_plot[i]], s=160, facecolors="none", edgecolors="C3", label="OSM default")
