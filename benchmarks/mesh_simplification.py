@@ -1,6 +1,6 @@
 """Mesh simplification, run time against error: radio meshes coarser than the visual mesh, traced.
 
-    python -m benchmarks.mesh_simplification [--quick] --out DIR [--extract small_block.osm]
+    python -m benchmarks.mesh_simplification [--quick] --out DIR [--extract helsinki.osm.pbf]
 
 The claim under test: a radio mesh can have one to two orders of magnitude fewer triangles than the
 visual mesh with the dominant paths unchanged. On one shared OSM extract (``../shared/data/osm``,
@@ -8,7 +8,7 @@ visual mesh with the dominant paths unchanged. On one shared OSM extract (``../s
 and 71 654 visual triangles, most of them window frames), the visual mesh is built
 as the ``paired_meshes`` stage builds it (:func:`simart_pipeline.scene.meshes.build_meshes`:
 solids, roofs, window frames, ground surfaces), each visual face given the radio material of the
-OSM feature it comes from. The levels (:func:`levels`), each a set of meshes per (class, material):
+OSM feature it comes from. The levels (:func:`level_specs`), each a set of meshes per (class, material):
 
 - ``visual``: the visual mesh as it is, the **reference**;
 - ``lossless`` and ``quadric f``: :mod:`simart_pipeline.scene.simplify` as the mesh import runs it
