@@ -141,6 +141,22 @@ def _sum_osm_build(r):
             f"{v.get('visual_per_radio_triangle')}x more visual than radio triangles" for name, v in r.items()]
 
 
+def _sum_mesh_simplification(r):
+    lv = {x["label"]: x for x in r.get("levels", [])}
+    d = lv.get(r.get("osm_default"), {})
+    cl, fr = r.get("claim", {}), r.get("front", {})
+    sp, ln, ck = d.get("strongest_path", {}), d.get("links", {}), d.get("ckm", {})
+    return [f"OSM default ({r.get('osm_default')}): {d.get('reduction_x')}x fewer triangles than the visual mesh "
+            f"({r.get('visual_triangles')}), trace warm {d.get('trace_ratio_to_full')}x the visual mesh's time; "
+            f"strongest path agrees on {sp.get('strongest_agree_pct')} % of links (top-3 {sp.get('top_k_agree_pct')} %), "
+            f"link gain |error| p50 / p95 {_get(ln, 'path_gain_db', 'p50')} / {_get(ln, 'path_gain_db', 'p95')} dB, "
+            f"CKM gain p50 / p95 {_get(ck, 'path_gain_db', 'p50')} / {_get(ck, 'path_gain_db', 'p95')} dB",
+            f"largest reduction keeping the strongest path on >= {cl.get('strongest_agree_at_least_pct')} % of links: "
+            f"**{cl.get('largest_reduction_level')}, {cl.get('largest_reduction_x')}x**",
+            f"time / error front: {', '.join(fr.get('levels', []))}; OSM default on it: "
+            f"{_get(fr, 'osm_default', 'on_front')} (warm times vary {fr.get('trace_warm_spread_pct')} % between repeats)"]
+
+
 def _sum_link_sys(r):
     lines = [f"{k}: {v}" for k, v in r.items() if re.search(r"ratio|speedup|_s$|per_s$", k) and not isinstance(v, dict)][:12] \
         or [_generic_line(r)]
@@ -216,6 +232,9 @@ BENCHMARKS: list[Bench] = [
     Bench("osm_build", "Scene construction from the shared OSM extracts",
           lambda q, o: ["--json", str(o / "results.json")] + (["--repeat", "1"] if q else []),
           needs=(OSM,), timeout_s=(90, 300), summary=_sum_osm_build),
+    Bench("mesh_simplification", "Mesh simplification: radio mesh triangles against path and CKM error (Helsinki)",
+          lambda q, o: ["--out", str(o)] + (["--quick"] if q else []),
+          needs=(OSM / "helsinki.osm.pbf",), timeout_s=(300, 1500), summary=_sum_mesh_simplification),
     Bench("link_sys", "Link abstraction: evaluations per second, and against Sionna SYS where its extra is installed",
           lambda q, o: ["--json", str(o / "results.json")] + (["--users", "500", "--repeat", "2"] if q else []),
           timeout_s=(120, 600), summary=_sum_link_sys),

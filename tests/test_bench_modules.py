@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmarks import harness, overhead, skipped_work
+from benchmarks import harness, mesh_simplification, overhead, skipped_work
 
 TINY = Path(__file__).parent / "scenes" / "tiny"
 
@@ -161,3 +161,79 @@ def test_sweep_skips_a_count_predicted_too_slow():
     assert runs == [10**5, 10**6]
     assert points[1]["echo"] == 10**6 and points[1]["first_call_s"] is None
     assert points[2]["rays"] == 10**7 and "skipped" in points[2]
+def _paths(power, tau_ns, inter):
+    """Synthetic links for the strongest-path agreement: ``power`` [links, path] (0: no path),
+    delays in ns, interaction sequences [links, path, depth]."""
+    power = np.asarray(power, float)
+    return {"power": power, "tau_s": 1e-9 * np.asarray(tau_ns, float),
+            "interaction": np.moveaxis(np.asarray(inter, np.uint8), -1, 1), "valid": power > 0}
+
+
+def test_strongest_path_agreement_known_answer():
+    los, refl, refl2 = [0, 0], [1, 0], [1, 1]
+    ref = _paths([[1.0, 0.5, 0.25, 0.01], [1.0, 0.5, 0, 0], [1.0, 0.5, 0, 0], [1.0, 0, 0, 0], [0, 0, 0, 0]],
+                 [[10, 20, 30, 40], [10, 20, 0, 0], [10, 20, 0, 0], [10, 0, 0, 0], [0, 0, 0, 0]],
+                 [[los, refl, refl2, refl2], [los, refl, los, los], [los, refl, los, los], [los] * 4, [los] * 4])
+    test = _paths(
+        # 0: the same three strongest, listed in another order, the weak fourth lost: both agree
+        [[0.25, 1.0, 0.5, 0], [1.0, 0.5, 0, 0], [1.0, 0.6, 0, 0], [0, 0, 0, 0], [1.0, 0, 0, 0]],
+        # 1: the second path 2 ns late: strongest agrees, top-3 not; 2: second path 0.8 dB up: both agree;
+        # 3: the link lost: neither; 4: no reference path: not counted
+        [[30, 10, 20, 0], [10, 22, 0, 0], [10.5, 20, 0, 0], [0, 0, 0, 0], [10, 0, 0, 0]],
+        [[refl2, los, refl, los], [los, refl, los, los], [los, refl, los, los], [los] * 4, [los] * 4])
+    a = mesh_simplification.strongest_path_agreement(ref, test)
+    assert a["links"] == 4
+    assert a["strongest_agree"].tolist() == [True, True, True, False, False]
+    assert a["top_k_agree"].tolist() == [True, False, True, False, False]
+    assert a["strongest_agree_pct"] == 75.0 and a["top_k_agree_pct"] == 50.0
+    # another interaction sequence, or 1.1 dB, breaks the strongest path's agreement
+    other = _paths([[1.0]], [[10]], [[refl]])
+    assert not mesh_simplification.strongest_path_agreement(_paths([[1.0]], [[10]], [[los]]), other)["strongest_agree"][0]
+    louder = _paths([[10 ** 0.11]], [[10]], [[los]])
+    assert not mesh_simplification.strongest_path_agreement(_paths([[1.0]], [[10]], [[los]]), louder)["strongest_agree"][0]
+
+
+def test_simplification_levels_never_add_triangles():
+    """On a subdivided 1.5 m box (a window frame's size) and a sphere: the decimation ladder
+    (visual, lossless, quadric ..., drop < 2 m) and the plain quadric ladder never add triangles."""
+    import trimesh
+
+    box = trimesh.creation.box(extents=(1.5, 1.2, 1.2)).subdivide().subdivide()
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=5.0)
+    visual = {("building", "concrete"): box, ("building", "glass"): sphere}
+    osm_radio = {("building", "concrete"): sphere}
+    specs = mesh_simplification.level_specs(quick=False)
+    counts = {s["label"]: mesh_simplification.triangles(mesh_simplification.build_level(s, visual, osm_radio))
+              for s in specs}
+    ladder = [counts[s["label"]] for s in specs if s["kind"] == "visual" or s.get("mode") == "quadric"
+              or s["label"] == "lossless"]
+    plain = [counts[mesh_simplification.OSM_DEFAULT]] + [counts[s["label"]] for s in specs if s["kind"] == "plain"]
+    assert ladder[0] == len(box.faces) + len(sphere.faces)
+    assert all(b <= a for a, b in zip(ladder, ladder[1:])) and ladder[-1] < ladder[1], ladder
+    # drop < 2 m: lossless without the box
+    lossless = next(s for s in specs if s["label"] == "lossless")
+    sphere_alone = mesh_simplification.build_level(lossless, {("building", "glass"): sphere}, osm_radio)
+    assert counts["drop < 2 m"] == mesh_simplification.triangles(sphere_alone) < counts["lossless"]
+    assert all(b <= a for a, b in zip(plain, plain[1:])) and plain[-1] < plain[0] / 10, plain
+
+
+def test_visual_faces_get_their_features_radio_materials():
+    """On the shared small_block.osm: every visual face finds its OSM feature's radio material, the
+    groups hold every face, and the receivers stand outside every building."""
+    import shapely
+
+    from simart_pipeline.scene import meshes
+    from simart_pipeline.scene.osm import read_extract
+
+    path = mesh_simplification.OSM / "small_block.osm"
+    assert path.is_file(), f"{path}: the shared OSM extracts are missing (../shared/data/osm)"
+    geom = read_extract(path)
+    built = meshes.build_meshes(geom)
+    groups, unknown = mesh_simplification.visual_groups(built, geom)
+    assert unknown == 0
+    assert mesh_simplification.triangles(groups) == len(built.visual.faces)
+    assert {m for _, m in groups} == {m for _, m in built.radio}
+    tx, ori, rx, gx, gy = mesh_simplification.placement(geom, 20)
+    footprints = shapely.union_all([f.geometry for f in geom.volumes()])
+    assert len(rx) == 20 and not any(footprints.contains(shapely.Point(p[:2])) for p in rx)
+    assert not footprints.contains(shapely.Point(tx[:2])) and np.all(np.diff(gx) > 0) and np.all(np.diff(gy) > 0)
