@@ -262,7 +262,7 @@ def _image(t, frame, h, w, encoding, step, data) -> dict:
 def _camera_stream(path: str, ds: xr.Dataset) -> Iterator[Msg]:
     base = f"/{path}"
     frame = ds.attrs["frame_id"]
-    n, h, w = ds.sizes["time"], ds.sizes["y"], ds.sizes["x"]
+    h, w = ds.sizes["y"], ds.sizes["x"]
     k = ds["camera_matrix"].values
     d = np.nan_to_num(ds["distortion_coefficients"].values)
     p = np.zeros((3, 4))
