@@ -511,9 +511,14 @@ measure says why. The module docstring of each `benchmarks/<name>.py` defines it
 """
 
 
+REPORT_MARKER = "<!-- the report of the run: written by simart bench --publish; edit above this line -->"
+
+
 def publish(out: Path, doc: Path) -> list[Path]:
     """Write the report of the run in ``out`` as the document ``doc``, its plots copied beside it
-    into ``<doc without suffix>/`` and its links pointed there; returns the copied plots."""
+    into ``<doc without suffix>/`` and its links pointed there; returns the copied plots. Where
+    ``doc`` already holds :data:`REPORT_MARKER`, the text above it is kept (a person's findings);
+    otherwise the page starts with :data:`DOC_INTRO`."""
     results = json.loads((out / "results.json").read_text())
     assets = doc.with_suffix("")
     copied = []
@@ -527,7 +532,11 @@ def publish(out: Path, doc: Path) -> list[Path]:
     # image links in the report are relative to DIR; in the doc, relative to the doc's folder
     md = re.sub(r"(!\[[^\]]*\]\()(?!https?:|/)", lambda m: m.group(1) + assets.name + "/", md)
     md = re.sub(r"^(#+)", r"#\1", md, flags=re.M)   # the report's headings one level below the page's
-    doc.write_text(DOC_INTRO.format(assets=assets.name) + md)
+    # what a person wrote above the marker (findings, choices) stays; the report below it is replaced
+    head = DOC_INTRO.format(assets=assets.name)
+    if doc.is_file() and REPORT_MARKER in doc.read_text():
+        head = doc.read_text().split(REPORT_MARKER, 1)[0]
+    doc.write_text(head + REPORT_MARKER + "\n\n" + md)
     return copied
 
 

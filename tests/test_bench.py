@@ -190,3 +190,21 @@ def test_publish_writes_the_page_with_its_plots_beside_it(tmp_path, capsys):
     other = tmp_path / "other.md"
     assert cli.main(["bench", "--publish", str(tmp_path / "nope"), "--doc", str(other)]) == 1
     assert "nope" in capsys.readouterr().err and not other.exists()
+
+
+def test_publish_keeps_what_a_person_wrote_above_the_marker(tmp_path):
+    out = tmp_path / "run"
+    results = {"mode": "full", "command": "simart bench --out run", "started_utc": "now", "total_wall_s": 2.0,
+               "machine": bench.machine(), "benchmarks": []}
+    bench.write(out, results, [])
+    doc = tmp_path / "benchmarks.md"
+    bench.publish(out, doc)
+    first = doc.read_text()
+    assert bench.REPORT_MARKER in first and "2.0 s in all" in first
+    doc.write_text("# My findings\n\nThe default is off the front.\n\n" + bench.REPORT_MARKER + "\nold report\n")
+    results["total_wall_s"] = 3.0
+    bench.write(out, results, [])
+    bench.publish(out, doc)
+    md = doc.read_text()
+    assert md.startswith("# My findings\n\nThe default is off the front.\n\n" + bench.REPORT_MARKER)
+    assert "old report" not in md and "3.0 s in all" in md and md.count(bench.REPORT_MARKER) == 1
