@@ -42,7 +42,8 @@ def radio_map_path_gain_db(radio, cfg: SceneConfig, height_m: float, samples_per
             orientation=[0.0, 0.0, 0.0], size=[cols * ck.cell_size_m, rows * ck.cell_size_m],
             cell_size=[ck.cell_size_m, ck.cell_size_m], samples_per_tx=samples_per_tx,
             max_depth=rt_cfg.max_depth, los=rt_cfg.los, specular_reflection=rt_cfg.specular_reflection,
-            diffuse_reflection=rt_cfg.diffuse_reflection, refraction=rt_cfg.refraction, seed=rt_cfg.seed)
+            diffuse_reflection=rt_cfg.diffuse_reflection, refraction=rt_cfg.refraction,
+            diffraction=rt_cfg.diffraction, edge_diffraction=rt_cfg.edge_diffraction, seed=rt_cfg.seed)
         gain = np.array(rm.path_gain)                     # [tx, cells_y, cells_x]
         centres = np.array(rm.cell_centers)               # [cells_y, cells_x, 3]
     finally:
