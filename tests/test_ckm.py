@@ -251,6 +251,7 @@ def test_fast_mode_writes_the_same_layers_and_agrees_with_the_reference(tiny_bui
     for name in ref.data_vars:
         assert ref[name].dims == fast[name].dims and ref[name].attrs.get("units") == fast[name].attrs.get("units"), name
     assert fast.attrs["mode"] == "fast" and np.isnan(fast["path_gain_coherent_db"].values).all()
+    assert list(fast.attrs["rays_per_bs"]) == [1_000_000] * len(fast_cfg.base_stations)  # no adaptive rule
     both = np.isfinite(ref["path_gain_db"].values) & np.isfinite(fast["path_gain_db"].values)
     assert both.sum() > 50
     diff = np.abs(ref["path_gain_db"].values - fast["path_gain_db"].values)[both]

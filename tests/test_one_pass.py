@@ -453,3 +453,33 @@ def test_outdoor_mask_with_shared_walls_stacked_parts_and_a_courtyard(tmp_path):
     assert inside[0].sum() > 1000 and (~inside[0] & (X[0] > 70) & (X[0] < 80) & (Y[0] > 10) & (Y[0] < 20)).sum() == 100
     np.testing.assert_array_equal(frac == 0.0, inside)
     np.testing.assert_array_equal(frac == 1.0, ~inside)
+
+
+def test_adaptive_rule_raises_the_rays_until_few_cells_lack_hits(tmp_path):
+    """ckm.adaptive_max_rays: from a ray count that leaves many reached cells below
+    min_hits_for_power, the pass is rerun with 4x the rays until at most the target share is left
+    (or the cap stops it); the result is exactly the single pass at the final count, and its share
+    of under-sampled cells is lower than the first pass's."""
+    xml = _write_scene(tmp_path / "gw", {"ground": (_ground(), "medium_dry_ground"),
+                                         "wall": (_wall(12.0), "brick")}, 0.3)
+    radio = RadioScene.from_config(xml, _cfg(pattern="tr38901"))
+    x, y = _axes(-20.0, 20, -20.0, 20, 2.0)
+    args = (radio, np.array([0.0, 1.0, 8.0]), np.array([0.2, 0.1, 0.0]), x, y, np.array([1.5]))
+    first = op.one_pass_moments(*args, num_rays=2_000, max_depth=2)
+    share0 = op.undersampled_fraction(first)
+    assert share0 > 0.5
+    m = op.adaptive_one_pass_moments(*args, num_rays=2_000, max_rays=2_000 * 4**4, max_undersampled_fraction=0.05,
+                                     max_depth=2)
+    assert m.num_rays in [2_000 * 4**k for k in range(1, 5)]
+    assert op.undersampled_fraction(m) <= 0.05 or m.num_rays == 2_000 * 4**4
+    assert op.undersampled_fraction(m) < share0
+    if m.num_rays > 2_000 * 4:  # the step before was still above the target: it did not stop early
+        before = op.one_pass_moments(*args, num_rays=m.num_rays // 4, max_depth=2)
+        assert op.undersampled_fraction(before) > 0.05
+    direct = op.one_pass_moments(*args, num_rays=m.num_rays, max_depth=2)
+    for f in fields(CellMoments):
+        np.testing.assert_array_equal(getattr(m, f.name), getattr(direct, f.name), err_msg=f.name)
+    # no cap: one pass, whatever the share
+    once = op.adaptive_one_pass_moments(*args, num_rays=2_000, max_rays=None, max_undersampled_fraction=0.0,
+                                        max_depth=2)
+    assert once.num_rays == 2_000 and np.array_equal(once.count, first.count)

@@ -54,6 +54,8 @@ def ckm_layers(context: dg.AssetExecutionContext, project: ProjectResource, ray_
         mosaic.write_tile(path, cfg.ckm, tile, ds, tile_version)
         meta[f"{name}_tile"] = "computed"
         meta["cells_traced"] = int(ds.attrs["cells_traced"])
+        if "rays_per_bs" in ds.attrs:
+            meta[f"{name}_rays_per_bs"] = ", ".join(f"{n:.0e}" for n in ds.attrs["rays_per_bs"])
     meta["compute_s"] = round(time.perf_counter() - t0, 2)
     meta["cells"] = int(grid.traced.size)
     if meta["cells_traced"]:

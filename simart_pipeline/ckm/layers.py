@@ -113,16 +113,18 @@ def reference_moments(radio, cfg: SceneConfig, points: np.ndarray, weights: np.n
 
 
 def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, tx_ant_positions_m
-                 ) -> mom.CellMoments:
-    """One shoot-and-bounce pass per base station over the tile's planes: moments ``[B, H, y, x]``."""
-    from simart_pipeline.ckm.one_pass import one_pass_moments
+                 ) -> tuple[mom.CellMoments, list[int]]:
+    """One shoot-and-bounce pass per base station over the tile's planes (more where
+    ``ckm.adaptive_max_rays`` asks): moments ``[B, H, y, x]`` and the rays each station's pass used."""
+    from simart_pipeline.ckm.one_pass import adaptive_one_pass_moments
 
     per_bs = []
     rx = cfg.platforms[0].array
     for b in cfg.base_stations:
-        per_bs.append(one_pass_moments(
+        per_bs.append(adaptive_one_pass_moments(
             radio, np.asarray(b.position_m, np.float64), np.deg2rad(np.asarray(b.orientation_deg, np.float64)),
-            grid.x, grid.y, grid.heights, num_rays=cfg.ckm.num_rays, max_depth=cfg.ray_tracing.max_depth,
+            grid.x, grid.y, grid.heights, num_rays=cfg.ckm.num_rays, max_rays=cfg.ckm.adaptive_max_rays,
+            max_undersampled_fraction=cfg.ckm.max_undersampled_fraction, max_depth=cfg.ray_tracing.max_depth,
             codebook=weights, tx_ant_positions_m=tx_ant_positions_m,
             min_hits_for_spread=cfg.ckm.min_hits_for_spread, min_hits_for_power=cfg.ckm.min_hits_for_power,
             cell_size_m=cfg.ckm.cell_size_m,
@@ -133,7 +135,7 @@ def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, t
     for f in mom.CellMoments.__dataclass_fields__:
         vals = [getattr(m, f) for m in per_bs]
         stacked[f] = None if vals[0] is None else np.stack(vals)
-    return mom.CellMoments(**stacked)
+    return mom.CellMoments(**stacked), [m.num_rays for m in per_bs]
 
 
 def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_dir=None,
@@ -162,7 +164,7 @@ def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_
             getattr(m, f)[:, traced] = getattr(mt, f)
         coherent[:, traced] = coh
     elif n_traced:
-        m = fast_moments(radio, cfg, grid, weights, tx_ant)
+        m, rays_per_bs = fast_moments(radio, cfg, grid, weights, tx_ant)
         coherent[:] = np.nan
     tx = np.array([b.position_m for b in cfg.base_stations], np.float64)
     centre = np.stack([xx, yy, hh], -1)
@@ -184,6 +186,8 @@ def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_
     ds = ds.merge(link_layers(cfg, m.beam_power, has, traced))
     ds.attrs.update(tile=tile, mode=cfg.ckm.mode, cells_traced=n_traced,
                     in_scene_tiling=int(tile_slices(cfg.ckm, tile) is not None))
+    if fast and n_traced:
+        ds.attrs["rays_per_bs"] = rays_per_bs  # the adaptive rule may have raised ckm.num_rays
     return ds
 
 

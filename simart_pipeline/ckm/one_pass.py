@@ -53,7 +53,8 @@ from simart_pipeline.ckm.shoot_bounce import (DIRECTION_QUANTUM, Q_BITS, Q_OFFSE
 from simart_pipeline.link.beams import rotation_local_to_world
 from simart_pipeline.vocabulary import SPEED_OF_LIGHT_MPS
 
-__all__ = ["OnePassMoments", "beam_factors", "one_pass_moments", "outdoor_fraction"]
+__all__ = ["OnePassMoments", "adaptive_one_pass_moments", "beam_factors", "one_pass_moments", "outdoor_fraction",
+           "undersampled_fraction"]
 
 DEFAULT_BATCH_RAYS = 1 << 20  # about 0.5 GB of ray state on the LLVM backend
 DEFAULT_MIN_HITS_FOR_SPREAD = 10
@@ -72,6 +73,7 @@ class OnePassMoments(CellMoments):
     min_count_for_power: int = 1
     outdoor_fraction: np.ndarray | None = None
     masked: np.ndarray | None = None  # [num_heights, ny, nx] bool: indoor or too little outdoor area
+    num_rays: int = 0                 # rays of the pass (0: a merge of passes)
 
     def layers(self) -> dict[str, np.ndarray]:
         """:func:`layers_from_moments` with this run's ``min_count_for_spread`` and
@@ -83,7 +85,7 @@ class OnePassMoments(CellMoments):
         base = [f.name for f in fields(CellMoments)]
         merged = CellMoments(**{k: getattr(self, k) for k in base}).merge(
             CellMoments(**{k: getattr(other, k) for k in base}))
-        return OnePassMoments(**{k: getattr(merged, k) for k in base},
+        return OnePassMoments(**{k: getattr(merged, k) for k in base}, num_rays=0,
                               min_count_for_spread=self.min_count_for_spread,
                               min_count_for_power=self.min_count_for_power,
                               outdoor_fraction=self.outdoor_fraction, masked=self.masked)
@@ -301,4 +303,34 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
     m.min_delay_s = np.where(masked, np.inf, m.min_delay_s)
     return OnePassMoments(**{f.name: getattr(m, f.name) for f in fields(CellMoments)},
                           min_count_for_spread=int(min_hits_for_spread),
-                          min_count_for_power=int(min_hits_for_power), outdoor_fraction=frac, masked=masked)
+                          min_count_for_power=int(min_hits_for_power), outdoor_fraction=frac, masked=masked,
+                          num_rays=int(num_rays))
+
+
+def undersampled_fraction(m: OnePassMoments) -> float:
+    """Share of the reached, unmasked cells whose ray hits stay below ``min_count_for_power``
+    (cells whose layers are masked for too few rays); 0 where nothing is reached."""
+    reached = (m.count >= 1) & ~m.masked
+    n = int(reached.sum())
+    return 0.0 if n == 0 else float((reached & (m.count < m.min_count_for_power)).sum() / n)
+
+
+ADAPTIVE_GROWTH = 4  # rays per refinement step: hits per cell grow 4x, their sampling error halves
+
+
+def adaptive_one_pass_moments(*args, num_rays: int, max_rays: int | None,
+                              max_undersampled_fraction: float, **kwargs) -> OnePassMoments:
+    """:func:`one_pass_moments` with the adaptive rule of ``ckm.adaptive_max_rays``: while more
+    than ``max_undersampled_fraction`` of the reached cells have too few hits for a value
+    (:func:`undersampled_fraction`), the pass is run again with :data:`ADAPTIVE_GROWTH` times the
+    rays, as long as that stays within ``max_rays`` (None: one pass). The result is that of the
+    last pass alone, so it equals a single pass at its ``num_rays`` (the lattices of two ray
+    counts are different rays: the passes are not summed). The other arguments are
+    :func:`one_pass_moments`'s."""
+    n = int(num_rays)
+    m = one_pass_moments(*args, num_rays=n, **kwargs)
+    while (max_rays is not None and n * ADAPTIVE_GROWTH <= max_rays
+           and undersampled_fraction(m) > max_undersampled_fraction):
+        n *= ADAPTIVE_GROWTH
+        m = one_pass_moments(*args, num_rays=n, **kwargs)
+    return m

@@ -45,6 +45,13 @@ class Ckm(_Model):
     # fewer hits than the second moments of the spreads.
     min_hits_for_power: int = Field(5, ge=1, description="fast mode: fewer ray hits mask path gain, "
                                     "ToA, mean delay, LoS and beam layers (layer enough_hits)")
+    adaptive_max_rays: int | None = Field(
+        None, ge=1_000, description="fast mode: where more than max_undersampled_fraction of the reached "
+        "cells have fewer than min_hits_for_power hits, the pass is rerun with 4x the rays while that "
+        "stays within this many (docs/ckm-one-pass.md); None: one pass of num_rays")
+    max_undersampled_fraction: float = Field(
+        0.05, ge=0, le=1, description="fast mode, with adaptive_max_rays: the share of reached cells "
+        "left masked for too few hits that stops the refinement")
     weathers: tuple[WeatherName, ...] | None = Field(
         None, description="weathers whose radio materials get a map (default: the scene's); weathers "
         "with equal materials share one map")
@@ -71,6 +78,9 @@ class Ckm(_Model):
             raise ValueError("heights_m: at least one height, none repeated")
         if self.region_m is not None and len(self.region_m) < 3:
             raise ValueError("region_m: a polygon needs at least three vertices")
+        if self.adaptive_max_rays is not None and self.adaptive_max_rays < self.num_rays:
+            raise ValueError(f"adaptive_max_rays ({self.adaptive_max_rays:,}) is below num_rays "
+                             f"({self.num_rays:,}): give at least num_rays, or null for one pass")
         cells = self.shape[0] * self.shape[1] * len(self.heights)
         if cells > MAX_CELLS:
             raise ValueError(f"the grid has {cells:,} cells (size_m / cell_size_m per side, times the heights); "
