@@ -1,5 +1,7 @@
 """Materialise a tiny scene end to end through Dagster: every asset, three weathers, two tiles."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import xarray as xr
@@ -154,3 +156,35 @@ def test_rerun_is_idempotent_and_reproducible(run):
     after = stores.open_store(data / "cirs" / "tiny" / "sunny.zarr").load()
     assert after.attrs["data_version"] == before.attrs["data_version"]
     xr.testing.assert_identical(before.drop_attrs(), after.drop_attrs())
+
+
+def test_no_runs_outputs_outlive_its_step(tmp_path, monkeypatch):
+    """`simart run` materialises step after step in one process; each run's result holds its
+    outputs (a weather's rendered frames: gigabytes for a long session). Before the next step
+    starts, the previous run's result must be gone, cycles included, or the peak memory grows
+    by a weather's frames per weather."""
+    import gc
+    import weakref
+
+    results = []
+    real = dg.materialize
+
+    def recording(*args, **kwargs):
+        res = real(*args, **kwargs)
+        results.append(weakref.ref(res))
+        return res
+
+    monkeypatch.setattr(dg, "materialize", recording)
+    alive_at_next_step = []
+
+    def progress(line):
+        if ": computing" in line and results:
+            alive_at_next_step.append(results[-1]() is not None)
+
+    gc.disable()  # no collection by chance between steps: the run must free its results itself
+    try:
+        materialize_scene(Path(__file__).parent / "scenes" / "tiny", tmp_path / "data", ["sunny"], ["r0c0"],
+                          instance=dg.DagsterInstance.ephemeral(), progress=progress)
+    finally:
+        gc.enable()
+    assert len(results) >= 3 and alive_at_next_step and not any(alive_at_next_step)
