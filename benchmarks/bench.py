@@ -476,7 +476,7 @@ def report_md(results: dict, benchmarks: list[Bench] | None = None) -> str:
                 figs = [f"(key figures unavailable: {type(exc).__name__}: {exc}; see results.json)"] + _generic(res)
             lines += [""] + [f"- {f}" for f in figs]
         for p in r["plots"]:
-            if not r["report"] or Path(p).name not in r["report"]:
+            if not r["report"] or f"]({Path(p).name})" not in r["report"]:  # not shown as an image there
                 lines += ["", f"![{Path(p).stem}]({p})"]
     return "\n".join(lines) + "\n"
 

@@ -58,6 +58,17 @@ def _run(scene: Path, data: Path, env: dict) -> dict:
     return {"wall_s": round(wall, 2), "in_process_s": float(m.group(1)) if m else None, "computed": computed}
 
 
+def _computed_summary(computed: list[str], every: int) -> str:
+    """Up to 8 partitions by name; more as a count per asset, and 'all' only when it is all of them."""
+    if len(computed) <= 8:
+        return ", ".join(computed)
+    per_asset: dict[str, int] = {}
+    for c in computed:
+        per_asset[c.split(" (")[0]] = per_asset.get(c.split(" (")[0], 0) + 1
+    counts = ", ".join(f"{a} x{n}" for a, n in per_asset.items())
+    return f"{len(computed)}{' (all)' if len(computed) == every else ''}: {counts}"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", required=True, help="directory for results.json and report.md")
@@ -106,8 +117,9 @@ def main(argv=None) -> int:
              "Each step is a whole `simart run` in a new process on one fresh data root and Dagster instance.", "",
              "| step | wall (s) | / first | in process (s) | / first | computed partitions |",
              "|---|---|---|---|---|---|"]
+    every = len(steps["first run"]["computed"])
     for name, s in steps.items():
-        comp = ", ".join(s["computed"]) if len(s["computed"]) <= 8 else f"{len(s['computed'])} (all)"
+        comp = _computed_summary(s["computed"], every)
         lines.append(f"| {name} | {s['wall_s']} | {s['ratio_to_first_wall']:.3f} | {s['in_process_s']} | "
                      f"{s.get('ratio_to_first_in_process', float('nan')):.4f} | {comp or 'none'} |")
     t = results["targets"]

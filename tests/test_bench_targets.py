@@ -88,3 +88,13 @@ def test_only_sensor_keeps_exactly_one_rendered_sensor():
         assert kept == [(device, sensor)]
         assert sum(1 for d in (*one.platforms, *one.base_stations) for s in d.sensors
                    if s.kind not in ("camera", "lidar")) == others
+
+
+def test_rerun_report_names_what_was_computed_and_says_all_only_when_it_was():
+    from benchmarks.rerun import _computed_summary
+
+    first = [f"{a} (demo|{w})" for a in ("sensor_frames", "session", "session_bag", "cirs") for w in ("sunny", "rainy", "night")]
+    nine = first[:9]
+    assert _computed_summary(nine, len(first)) == "9: sensor_frames x3, session x3, session_bag x3"
+    assert _computed_summary(first, len(first)).startswith("12 (all): ")
+    assert _computed_summary(first[:2], len(first)) == "sensor_frames (demo|sunny), sensor_frames (demo|rainy)"
