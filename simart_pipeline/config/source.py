@@ -60,6 +60,18 @@ class OsmSource(_Model):
         return v
 
 
+def check_pattern(v: str) -> str:
+    """A part or material pattern: a case-insensitive glob, or ``re:`` and a regular expression."""
+    if not v:
+        raise ValueError("an empty pattern matches nothing")
+    if v.startswith("re:"):
+        try:
+            re.compile(v[3:])
+        except re.error as exc:
+            raise ValueError(f"{v!r}: not a valid regular expression: {exc}") from None
+    return v
+
+
 class MeshPartRule(_Model):
     """How the parts that ``match`` are labelled and simplified (``docs/user-meshes.md``).
 
@@ -74,15 +86,7 @@ class MeshPartRule(_Model):
     drop: bool | None = Field(None, description="remove from the radio mesh (the visual mesh keeps it)")
     keep: bool | None = Field(None, description="never removed by the size threshold")
 
-    @field_validator("match")
-    @classmethod
-    def _pattern(cls, v):
-        if v.startswith("re:"):
-            try:
-                re.compile(v[3:])
-            except re.error as exc:
-                raise ValueError(f"not a valid regular expression: {exc}") from None
-        return v
+    _pattern = field_validator("match")(classmethod(lambda cls, v: check_pattern(v)))
 
     @model_validator(mode="after")
     def _known_names(self):
@@ -144,17 +148,6 @@ class MeshSource(_Model):
     _inside = field_validator("path")(classmethod(lambda cls, v: _inside_scene_dir(v, "the mesh")))
 
 
-def _check_pattern(v: str) -> str:
-    if not v:
-        raise ValueError("an empty pattern matches nothing")
-    if v.startswith("re:"):
-        try:
-            re.compile(v[3:])
-        except re.error as exc:
-            raise ValueError(f"{v!r}: not a valid regular expression: {exc}") from None
-    return v
-
-
 def _word(*words: str) -> str:
     """A pattern matching any of ``words`` as a whole word of a name (``mesh-car_3``, not ``Carlo``)."""
     return f"re:(.*[^a-z])?({'|'.join(words)})([^a-z].*)?"
@@ -205,7 +198,7 @@ class SionnaXmlSource(_Model):
     @classmethod
     def _classes(cls, v):
         for pattern, name in v.items():
-            _check_pattern(pattern)
+            check_pattern(pattern)
             try:
                 check_mesh_labels(semantic_class=name)
             except ValueError as exc:

@@ -202,6 +202,26 @@ def label_parts(parts: list[MeshPart], rules: MeshImportRules, source: Path) -> 
         p.keep = bool(chosen.get("keep", (False,))[0])
 
 
+def joined_parts(parts: list[MeshPart], rules: MeshImportRules, source: Path,
+                 fail=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Label ``parts`` (:func:`label_parts`) and join them into one table: (vertices, with those
+    closer than ``rules.merge_tolerance_m`` merged; faces into them; each face's part index).
+    Refuses non-finite coordinates and faces into missing vertices with ``fail(source, problem)``
+    (default: :class:`MeshImportError`)."""
+    fail = fail or _fail
+    label_parts(parts, rules, source)
+    raw_v = np.concatenate([p.mesh.vertices for p in parts])
+    if not np.all(np.isfinite(raw_v)):
+        raise fail(source, "vertex coordinates include NaN or inf")
+    offsets = np.cumsum([0] + [len(p.mesh.vertices) for p in parts])[:-1]
+    raw_f = np.concatenate([p.mesh.faces + o for p, o in zip(parts, offsets)])
+    if raw_f.min() < 0 or raw_f.max() >= len(raw_v):
+        raise fail(source, "a face refers to a vertex that does not exist")
+    face_part = np.concatenate([np.full(len(p.mesh.faces), i, np.int64) for i, p in enumerate(parts)])
+    vertices, inverse = simplify.merge_vertices(raw_v, rules.merge_tolerance_m)
+    return vertices, inverse[raw_f], face_part
+
+
 def import_mesh(source: Path, rules: MeshImportRules | None = None) -> ImportedMesh:
     """Read, label and check ``source``; refuse empty meshes, degenerate and non-manifold faces."""
     source = Path(source)
@@ -210,17 +230,7 @@ def import_mesh(source: Path, rules: MeshImportRules | None = None) -> ImportedM
     parts = [p for p in parts if len(p.mesh.faces)]
     if not parts:
         raise _fail(source, "the file holds no triangle" + (f" (only {', '.join(skipped)})" if skipped else ""))
-    label_parts(parts, rules, source)
-    raw_v = np.concatenate([p.mesh.vertices for p in parts])
-    if not np.all(np.isfinite(raw_v)):
-        raise _fail(source, "vertex coordinates include NaN or inf")
-    offsets = np.cumsum([0] + [len(p.mesh.vertices) for p in parts])[:-1]
-    raw_f = np.concatenate([p.mesh.faces + o for p, o in zip(parts, offsets)])
-    if raw_f.min() < 0 or raw_f.max() >= len(raw_v):
-        raise _fail(source, "a face refers to a vertex that does not exist")
-    face_part = np.concatenate([np.full(len(p.mesh.faces), i, np.int64) for i, p in enumerate(parts)])
-    vertices, inverse = simplify.merge_vertices(raw_v, rules.merge_tolerance_m)
-    faces = inverse[raw_f]
+    vertices, faces, face_part = joined_parts(parts, rules, source)
     degenerate = simplify.degenerate_faces(vertices, faces)
     dropped = int(degenerate.sum())
     if dropped and not rules.drop_degenerate_faces:

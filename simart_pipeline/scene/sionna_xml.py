@@ -36,7 +36,7 @@ from simart_pipeline.config import MeshImportRules, MeshPartRule, SionnaXmlSourc
 from simart_pipeline.scene import simplify
 from simart_pipeline.scene.geometry import SourceGeometry
 from simart_pipeline.scene.mesh_import import (_Y_UP_TO_Z_UP, ImportedMesh, MeshPart, build_from_imported,
-                                               label_parts, source_geometry_from_imported)
+                                               joined_parts, source_geometry_from_imported)
 from simart_pipeline.scene.meshes import SceneMeshes
 
 RADIO_BSDF_TYPES = ("itu-radio-material", "radio-material")
@@ -276,18 +276,11 @@ def read_sionna_xml(xml: Path, src: SionnaXmlSource, scene_dir: Path) -> tuple[I
     parts = [p for p in parts if len(p.mesh.faces)]
     if not parts:
         raise _fail(xml, "the scene holds no triangle")
-    label_parts(parts, rules, xml)
+    vertices, faces, face_part = joined_parts(parts, rules, xml, _fail)
     for p in parts:
         p.radio_material = names[p.material_name]
-    raw_v = np.concatenate([p.mesh.vertices for p in parts])
-    if not np.all(np.isfinite(raw_v)):
-        raise _fail(xml, "vertex coordinates include NaN or inf")
-    offsets = np.cumsum([0] + [len(p.mesh.vertices) for p in parts])[:-1]
-    raw_f = np.concatenate([p.mesh.faces + o for p, o in zip(parts, offsets)])
-    face_part = np.concatenate([np.full(len(p.mesh.faces), i, np.int64) for i, p in enumerate(parts)])
-    vertices, inverse = simplify.merge_vertices(raw_v, rules.merge_tolerance_m)
     # Degenerate and non-manifold faces are kept, as Sionna keeps them: the report counts them.
-    return ImportedMesh(xml, rules, parts, vertices, inverse[raw_f], face_part), mats
+    return ImportedMesh(xml, rules, parts, vertices, faces, face_part), mats
 
 
 def build_from_sionna_xml(xml: Path, src: SionnaXmlSource, scene_dir: Path) -> tuple[SceneMeshes, dict]:
