@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Callable
 
 from benchmarks import targets
+from benchmarks.targets import lookup as _get
 
 ROOT = Path(__file__).resolve().parents[1]
 OSM = ROOT.parent / "shared" / "data" / "osm"   # where benchmarks.osm_build and benchmarks.sensing read
@@ -59,14 +60,6 @@ class Bench:
 
 
 # --- key figures per benchmark -------------------------------------------------------------------
-
-def _get(d, *keys, default=None):
-    for k in keys:
-        if not isinstance(d, dict) or k not in d:
-            return default
-        d = d[k]
-    return d
-
 
 def _sum_tracing(r):
     t = r.get("trajectory", {})
