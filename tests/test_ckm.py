@@ -261,6 +261,22 @@ def test_fast_mode_writes_the_same_layers_and_agrees_with_the_reference(tiny_bui
     assert not fast["has_path"].values[:, indoor].any()
 
 
+def test_fast_mode_follows_the_scenes_diffraction_switch(tiny_built, tiny_scene):
+    """ray_tracing.diffraction reaches the one-pass solver in fast mode (it was dropped once, so
+    fast maps ignored the switch): the diffracting map keeps every cell of the plain one and
+    reaches shadowed cells besides."""
+    cfg, geom, _, out = tiny_built
+    fast = lambda raw: raw["ckm"].update(tiles=[1, 1], size_m=[80.0, 60.0], cell_size_m=4.0, mode="fast",  # noqa: E731
+                                         num_rays=1_000_000, min_hits_for_power=1)
+    plain = _cfg(tiny_scene, fast)
+    diffracting = _cfg(tiny_scene, lambda raw: (fast(raw), raw.setdefault("ray_tracing", {}).update(diffraction=True)))
+    radio = RadioScene.from_config(meshes.radio_scene_file(out), plain)
+    without = np.isfinite(tile_layers(radio, plain, geom, "r0c0")["path_gain_db"].values)
+    with_ = np.isfinite(tile_layers(radio, diffracting, geom, "r0c0")["path_gain_db"].values)
+    assert (with_ | ~without).all()
+    assert with_.sum() > without.sum()
+
+
 def test_cells_with_few_ray_hits_hold_no_gain_toa_or_beams():
     """Fast-mode moments of three cells reached by 1, 4 and 5 ray hits: with min_count_for_power 5
     only the third keeps gain, ToA, LoS and beams; the others keep has_path and their count."""

@@ -402,7 +402,7 @@ def test_gain_agrees_with_sionna_radio_map_solver():
 def test_unsupported_interactions_and_bad_grids_are_refused(free_space):
     x, y = _axes(0.0, 4, 0.0, 4, 1.0)
     args = (free_space, np.zeros(3), np.zeros(3), x, y, np.array([1.5]), 100, 1)
-    for kw in ("refraction", "diffraction", "diffuse_reflection"):
+    for kw in ("refraction", "diffuse_reflection"):
         with pytest.raises(ValueError, match=f"{kw}.*line of sight and specular"):
             op.one_pass_moments(*args, **{kw: True})
     with pytest.raises(ValueError, match="x_m.*equally spaced"):
@@ -483,3 +483,90 @@ def test_adaptive_rule_raises_the_rays_until_few_cells_lack_hits(tmp_path):
     once = op.adaptive_one_pass_moments(*args, num_rays=2_000, max_rays=None, max_undersampled_fraction=0.0,
                                         max_depth=2)
     assert once.num_rays == 2_000 and np.array_equal(once.count, first.count)
+
+
+def _box_and_ground_scene(tmp_path, ground: bool):
+    """A 20 m x 40 m block, 30 m tall, on an optional ground plane."""
+    b = _block(10.0, 30.0, -20.0, 20.0, 0.0, 30.0 if ground else 200.0)
+    if not ground:
+        b.apply_translation([0.0, 0.0, -100.0])
+    parts = {"b": (b, "concrete")} | ({"g": (_ground(), "medium_dry_ground")} if ground else {})
+    return _write_scene(tmp_path / "s", parts, 0.2)
+
+
+@pytest.mark.parametrize("ground", [False, True], ids=["diffraction only", "with ground reflections after"])
+def test_diffraction_agrees_with_pathsolver_in_the_shadow_of_a_block(tmp_path, ground):
+    """Beside and behind a block, where the transmitter has no line of sight, the one-pass map
+    with diffraction against PathSolver (diffraction on, the same depth) averaged over 3 x 3
+    points per cell: the same cells reached, and each cell's gain within the Monte-Carlo spread
+    (measured p50 0.1 to 0.3 dB, p95 0.4 to 1.1 dB at 2e6 rays). Without a ground the paths are
+    the wedge's first-order diffraction alone; with it, diffracted rays also reflect off the
+    ground on their way (PathSolver's (diffraction, reflection) paths)."""
+    raw = _cfg().model_dump(mode="json")
+    depth = 2 if ground else 1
+    raw["ray_tracing"].update(diffraction=True, specular_reflection=ground, max_depth=depth, samples_per_src=100_000)
+    cfg = SceneConfig.model_validate(raw)
+    radio = RadioScene.from_config(_box_and_ground_scene(tmp_path, ground), cfg)
+    tx = np.array([0.0, 0.0, 10.0])
+    cell = 2.0
+    x, y = _axes(16.0, 8, 16.0, 6, cell)
+    m = op.one_pass_moments(radio, tx, np.zeros(3), x, y, [1.5], 2_000_000, depth, diffraction=True,
+                            specular_reflection=ground, rx_polarization="V", min_hits_for_power=1)
+    off = (np.arange(3) - 1) * cell / 3
+    X, Y = np.meshgrid(x, y)
+    ox, oy = (a.ravel() for a in np.meshgrid(off, off))
+    pts = np.stack([(X.ravel()[:, None] + ox).ravel(), (Y.ravel()[:, None] + oy).ravel(), np.full(X.size * 9, 1.5)], -1)
+    p = radio.trace(tx[None], np.zeros((1, 3)), pts)
+    power = np.abs(p.a[:, 0, 0, 0, :]) ** 2 * p.valid[:, 0, :]
+    ref = power.sum(-1).reshape(X.size, 9).mean(1).reshape(X.shape)
+    shadow = ~p.los[:, 0].any(-1).reshape(X.size, 9).any(1).reshape(X.shape)
+    assert shadow.sum() >= 20 and (p.interaction == 8).any()  # 8: Sionna's diffraction
+    np.testing.assert_array_equal((m.power[0] > 0)[shadow], (ref > 0)[shadow])
+    err = 10 * np.log10(m.power[0][shadow & (ref > 0)] / ref[shadow & (ref > 0)])
+    assert np.median(np.abs(err)) < 0.5 and np.percentile(np.abs(err), 95) < 2.0, err
+
+
+def test_diffraction_fills_the_street_canyon_as_radio_map_solver_does():
+    """Sionna's street canyon, first-order diffraction (max_depth 1, as RadioMapSolver traces
+    it): every outdoor cell that RadioMapSolver reaches, the one-pass map reaches, and the other
+    way round; the cells only diffraction reaches agree to the Monte-Carlo spread of both
+    solvers (p50 about 1 dB at 1e6 rays), the others as without diffraction."""
+    import mitsuba as mi
+    import sionna.rt as rt
+
+    radio = RadioScene.from_config(rt.scene.simple_street_canyon, _cfg())
+    tx, cell = np.array([-30.0, 5.0, 20.0]), 2.0
+    x, y = _axes(-60.0, 60, -30.0, 30, cell)
+    n = 1_000_000
+    kw = dict(rx_polarization=None, min_hits_for_power=1)
+    without = op.one_pass_moments(radio, tx, np.zeros(3), x, y, [1.5], n, 1, **kw).power[0]
+    m = op.one_pass_moments(radio, tx, np.zeros(3), x, y, [1.5], n, 1, diffraction=True, **kw)
+    radio.scene.add(rt.Transmitter("tx_rm", position=tx.tolist(), orientation=[0.0, 0.0, 0.0], power_dbm=30.0))
+    rm = rt.RadioMapSolver()(radio.scene, center=mi.Point3f(0, 0, 1.5), orientation=mi.Point3f(0, 0, 0),
+                             size=mi.Point2f(120, 60), cell_size=mi.Point2f(cell, cell), samples_per_tx=n,
+                             max_depth=1, diffraction=True)
+    ref = rm.path_gain.numpy()[0]
+    outdoor = m.outdoor_fraction[0] == 1.0
+    only_diffraction = outdoor & (without == 0) & (ref > 0)
+    assert only_diffraction.sum() >= 10
+    np.testing.assert_array_equal((m.power[0] > 0)[outdoor], (ref > 0)[outdoor])
+    err = np.abs(10 * np.log10(m.power[0][only_diffraction] / ref[only_diffraction]))
+    assert np.median(err) < 1.5, err
+    rest = outdoor & (without > 0)
+    assert np.median(np.abs(10 * np.log10(m.power[0][rest] / ref[rest]))) < 0.1
+
+
+def test_diffraction_is_deterministic_and_batch_independent(tmp_path):
+    radio = RadioScene.from_config(_box_and_ground_scene(tmp_path, True), _cfg())
+    x, y = _axes(0.0, 20, 0.0, 20, 2.0)
+    codebook = np.ones((1, 1), complex)
+    kw = dict(diffraction=True, codebook=codebook, min_hits_for_power=1)
+    a = op.one_pass_moments(radio, np.array([0.0, 0.0, 10.0]), np.zeros(3), x, y, [1.5], 200_000, 2, **kw)
+    b = op.one_pass_moments(radio, np.array([0.0, 0.0, 10.0]), np.zeros(3), x, y, [1.5], 200_000, 2, **kw)
+    c = op.one_pass_moments(radio, np.array([0.0, 0.0, 10.0]), np.zeros(3), x, y, [1.5], 200_000, 2,
+                            batch_rays=30_001, **kw)
+    for f in fields(CellMoments):
+        va, vb, vc = getattr(a, f.name), getattr(b, f.name), getattr(c, f.name)
+        np.testing.assert_array_equal(va, vb)
+        np.testing.assert_allclose(vc, va, rtol=1e-9, atol=0)
+    assert (a.count > 0).sum() > 0

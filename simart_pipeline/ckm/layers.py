@@ -130,7 +130,11 @@ def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, t
             cell_size_m=cfg.ckm.cell_size_m,
             indoor=grid.inside_building | grid.outside_region[None],
             # as the reference mode's receiver: its polarisation, not the whole field
-            rx_polarization=rx.polarization if rx.pattern == "iso" else None))
+            rx_polarization=rx.polarization if rx.pattern == "iso" else None,
+            # the interaction types of the scene's ray tracing, as the reference mode's PathSolver
+            los=cfg.ray_tracing.los, specular_reflection=cfg.ray_tracing.specular_reflection,
+            diffraction=cfg.ray_tracing.diffraction, edge_diffraction=cfg.ray_tracing.edge_diffraction,
+            refraction=cfg.ray_tracing.refraction, diffuse_reflection=cfg.ray_tracing.diffuse_reflection))
     stacked = {}
     for f in mom.CellMoments.__dataclass_fields__:
         vals = [getattr(m, f) for m in per_bs]

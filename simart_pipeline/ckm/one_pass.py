@@ -32,9 +32,11 @@ Cells are masked (zero moments) where the caller says ``indoor`` or where less t
 that share. Spreads and mean angles need ``min_hits_for_spread`` ray hits
 (:meth:`OnePassMoments.layers`).
 
-Handled: line of sight, specular reflection up to ``max_depth``. Refused with a ValueError:
-refraction, diffraction, diffuse reflection (a material's scattering coefficient ``S`` only
-lowers the specular field by ``sqrt(1 - S^2)``, as in Sionna RT; the diffuse energy is not traced).
+Handled: line of sight, specular reflection up to ``max_depth``, and first-order wedge and edge
+diffraction (:mod:`simart_pipeline.ckm.diffraction`: diffracted rays reflect specularly on).
+Refused with a ValueError: refraction, diffuse reflection (a material's scattering coefficient
+``S`` only lowers the specular field by ``sqrt(1 - S^2)``, as in Sionna RT; the diffuse energy is
+not traced).
 Rays are traced in batches of lattice sub-ranges (bounded memory; the same rays whatever the
 batch size) and accumulated in float64 with numpy, so results depend on the batch size only
 through float64 summation order, and the same call twice gives bitwise-equal moments.
@@ -220,8 +222,8 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                      *, min_hits_for_power: int = DEFAULT_MIN_HITS_FOR_POWER, cell_size_m: float | None = None, indoor: np.ndarray | None = None,
                      min_outdoor_fraction: float = DEFAULT_MIN_OUTDOOR_FRACTION,
                      rx_polarization: str | None = None, los: bool = True, specular_reflection: bool = True,
-                     refraction: bool = False, diffraction: bool = False,
-                     diffuse_reflection: bool = False) -> OnePassMoments:
+                     refraction: bool = False, diffraction: bool = False, edge_diffraction: bool = False,
+                     diffuse_reflection: bool = False, diffraction_samples: int | None = None) -> OnePassMoments:
     """Per-cell power moments of one transmitter over a grid, from one shoot-and-bounce pass.
 
     :param radio: :class:`simart_pipeline.radio.tracer.RadioScene` (mesh, materials of its
@@ -244,14 +246,15 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         (power normalised by the outdoor area the rays can reach)
     :param rx_polarization: None: isotropic receiver collecting the whole field ``|E|^2``
         (RadioMapSolver's); ``"V"`` / ``"H"``: an isotropic element of that polarisation
-    :param los, specular_reflection: interaction types as in Sionna RT; ``refraction``,
-        ``diffraction``, ``diffuse_reflection``: not supported, True raises ValueError
+    :param los, specular_reflection, diffraction, edge_diffraction: interaction types as in
+        Sionna RT (diffraction: :mod:`simart_pipeline.ckm.diffraction`, ``diffraction_samples``
+        points on the lit wedges, default ``num_rays``); ``refraction``, ``diffuse_reflection``:
+        not supported, True raises ValueError
     :return: :class:`OnePassMoments` of grid shape ``[num_heights, ny, nx]``
     """
     from simart_pipeline import engine
 
-    for flag, name in ((refraction, "refraction"), (diffraction, "diffraction"),
-                       (diffuse_reflection, "diffuse_reflection")):
+    for flag, name in ((refraction, "refraction"), (diffuse_reflection, "diffuse_reflection")):
         if flag:
             raise ValueError(f"{name}: the one-pass CKM solver handles line of sight and specular "
                              "reflection only; use the reference mode (PathSolver) for it")
@@ -284,6 +287,15 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
     with _InOrderWorker(acc) as sink:
         for start in range(0, int(num_rays), int(batch_rays)):
             tracer.trace(start, min(start + int(batch_rays), int(num_rays)), sink)
+        if diffraction and int(max_depth) > 0:  # Sionna counts a diffraction as one interaction of max_depth
+            from simart_pipeline.ckm.diffraction import DiffractionSampler
+
+            # the diffraction is one of max_depth interactions; specular ones may follow it
+            wedges = DiffractionSampler(radio, tracer, tx_position_m, rot, grid, depth - 1 if depth else 0,
+                                        edge_diffraction)
+            wedges.find_wedges(int(num_rays), int(batch_rays))
+            wedges.trace(int(num_rays if diffraction_samples is None else diffraction_samples),
+                         int(batch_rays), sink)
     m = acc.moments()
     frac = outdoor_fraction(radio, x_m, y_m, grid.heights, cell_size_m=cell_size_m)
     masked = frac < min_outdoor_fraction

@@ -104,6 +104,34 @@ def fibonacci_directions(start: int, stop: int, num_rays: int):
     return mi.Vector3f(r * cp, r * sp, z)
 
 
+def direction_terms(d_c, d_dep, rotation, with_beams: bool) -> dict:
+    """The direction part of a deposit: cos and sin of azimuth and zenith, arrival then departure
+    (ANGLES order; arrival angles are those of ``-d_c``, towards where the wave comes from, as
+    PathSolver's), and with ``with_beams`` the departure direction in the device frame quantised
+    to :data:`DIRECTION_QUANTUM` (the key of ``one_pass._Accumulator._beams``). ``d_c``: unit
+    propagation direction into the cell centre; ``d_dep``: unit departure direction (world);
+    ``rotation``: device-to-world rotation (rows indexable, numbers or opaque floats)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    out = {}
+    for k, u in enumerate((-d_c, d_dep)):
+        rho = dr.sqrt(dr.maximum(u.x * u.x + u.y * u.y, 0.0))
+        safe = rho > 0
+        out[f"cos{2 * k}"] = dr.select(safe, u.x / rho, 1.0)
+        out[f"sin{2 * k}"] = dr.select(safe, u.y / rho, 0.0)
+        out[f"cos{2 * k + 1}"] = dr.clip(u.z, -1.0, 1.0)
+        out[f"sin{2 * k + 1}"] = rho
+    if with_beams:
+        key = mi.UInt64(0)
+        for k in range(3):
+            c = sum(rotation[i][k] * d_dep[i] for i in range(3))
+            q = mi.UInt64(mi.Int32(dr.round(c * (1.0 / DIRECTION_QUANTUM))) + Q_OFFSET)
+            key = (key << Q_BITS) | q
+        out["dkey"] = key
+    return out
+
+
 def _material_tables(radio) -> tuple[np.ndarray, ...]:
     """Per Mitsuba shape id: complex relative permittivity (re, im), thickness m and the specular
     amplitude factor ``sqrt(1 - S^2)``, from the Sionna scene's radio materials (weather applied).
@@ -283,7 +311,7 @@ class Tracer:
         v = centre - (take["o"] - take["length"] * d)  # cell centre minus the image source
         dist = dr.norm(v)
         d_c = v / dist
-        d_dep = mi.Vector3f(dr.dot(take["m0"], d_c), dr.dot(take["m1"], d_c), dr.dot(take["m2"], d_c))
+        d_dep = dr.normalize(mi.Vector3f(dr.dot(take["m0"], d_c), dr.dot(take["m1"], d_c), dr.dot(take["m2"], d_c)))
         e_re, e_im = take["e_re"], take["e_im"]
         if self.rx_polarization is None:
             field2 = dr.squared_norm(e_re) + dr.squared_norm(e_im)
@@ -301,22 +329,7 @@ class Tracer:
         power = field2 * self.power_scale / dr.abs(d.z)
         cell = cell_offset + mi.UInt32(row) * g["nx_int"] + mi.UInt32(col)
         out = dict(cell=cell, power=power, dist=dist)
-        # cos and sin of azimuth and zenith, arrival then departure (ANGLES order); arrival angles
-        # are those of -d_c, towards where the wave comes from, as PathSolver's
-        for k, u in enumerate((-d_c, d_dep)):
-            rho = dr.sqrt(dr.maximum(u.x * u.x + u.y * u.y, 0.0))
-            safe = rho > 0
-            out[f"cos{2 * k}"] = dr.select(safe, u.x / rho, 1.0)
-            out[f"sin{2 * k}"] = dr.select(safe, u.y / rho, 0.0)
-            out[f"cos{2 * k + 1}"] = dr.clip(u.z, -1.0, 1.0)
-            out[f"sin{2 * k + 1}"] = rho
-        if self.with_beams:  # departure direction in the device frame, quantised (see _beams)
-            key = mi.UInt64(0)
-            for k in range(3):
-                c = sum(self.rot[i][k] * d_dep[i] for i in range(3))
-                q = mi.UInt64(mi.Int32(dr.round(c * (1.0 / DIRECTION_QUANTUM))) + Q_OFFSET)
-                key = (key << Q_BITS) | q
-            out["dkey"] = key
+        out.update(direction_terms(d_c, d_dep, self.rot, self.with_beams))
         dr.eval(*out.values())
         return {k: v.numpy() for k, v in out.items()}
 
@@ -358,12 +371,17 @@ class Tracer:
 
     def trace(self, start: int, stop: int, sink) -> None:
         """Trace lattice rays ``start..stop-1``; ``sink(deposits, line_of_sight)`` per crossing set."""
+        if stop > start:
+            self.propagate(self.launch(start, stop), sink, self.max_depth, from_transmitter=True)
+
+    def propagate(self, st, sink, max_depth: int, from_transmitter: bool) -> None:
+        """Trace ray state ``st`` (:meth:`launch`'s form) through up to ``max_depth`` specular
+        reflections. ``from_transmitter``: its first segment is line of sight (deposited only
+        with ``los``, and flagged so); False: rays of a secondary source (diffraction), every
+        segment deposited, none line of sight."""
         dr, mi = self.dr, self.mi
-        if stop <= start:
-            return
-        st = self.launch(start, stop)
         dr.eval(*st.values())
-        for depth in range(self.max_depth + 1):
+        for depth in range(max_depth + 1):
             # the preliminary intersection (distance, shape, triangle) is a third of the cost of a
             # full surface interaction; face normals come from our own table
             pi = self.scene.ray_intersect_preliminary(mi.Ray3f(st["o"], st["d"]), False)
@@ -372,12 +390,13 @@ class Tracer:
             ids = dr.reinterpret_array(mi.UInt32, pi.shape)
             prim = pi.prim_index
             dr.eval(t_hit, hit, ids, prim)
-            if depth > 0 or self.los:
+            line_of_sight = from_transmitter and depth == 0
+            if self.los or not line_of_sight:
                 for height, cell_offset in self.heights:
                     dep = self._deposits(st, t_hit, height, cell_offset)
                     if dep is not None:
-                        sink(dep, depth == 0)
-            if depth == self.max_depth:
+                        sink(dep, line_of_sight)
+            if depth == max_depth:
                 break
             st = self._reflect(st, t_hit, ids, prim, hit)
             if st is None:
