@@ -51,7 +51,8 @@ __all__ = ["DiffractionSampler", "WEDGE_KEY_M"]
 WEDGE_KEY_M = 1e-3      # end points closer than this are the same edge
 LEAK_OFFSET_M = 5e-2    # Sionna's offset of the visibility-test point off the wedge
 SPAWN_OFFSET_M = 1e-3   # diffracted rays start this far off the edge
-MAX_REFERENCE_DISTANCE_M = 1e4  # a diffracted ray meeting nothing: its field is taken this far out
+MAX_REFERENCE_DISTANCE_M = 1e4
+DIFFRACTED_RAY_KEY = 0x9E3779B9  # diffracted rays' random-number keys: sample index plus this  # a diffracted ray meeting nothing: its field is taken this far out
 _GOLDEN_RATIO = (1.0 + 5.0**0.5) / 2.0
 _PLASTIC = 1.32471795724474602596  # R2 sequence constant: the wedge-picking sample of step 1
 
@@ -161,9 +162,9 @@ class DiffractionSampler:
             n_w = counts[w].astype(np.float64)
             u = (kk + 0.5) / n_w
             v = np.mod(kk / _GOLDEN_RATIO, 1.0)
-            self._trace_batch(w, u, v, n_w, sink)
+            self._trace_batch(w, u, v, n_w, np.arange(start, start + len(w)), sink)
 
-    def _trace_batch(self, w_index, u, v, n_w, sink) -> None:
+    def _trace_batch(self, w_index, u, v, n_w, sample_index, sink) -> None:
         dr, mi = self.dr, self.mi
         from sionna.rt.antenna_pattern import antenna_pattern_to_world_implicit
         from sionna.rt.constants import MIN_SEGMENT_LENGTH
@@ -224,6 +225,12 @@ class DiffractionSampler:
                      # departure is towards q whatever the arrival: rank-one "mirror" columns
                      # (dep_k ko), so that the deposit's normalised M d_c is that direction
                      **{f"m{k}": kki[k] * kko for k in range(3)})
+        if self.tracer.sampled:
+            # diffuse reflection or refraction on: the tracer's random numbers are keyed by a ray
+            # index (not a lattice ray's: offset), and the delay restarts at q (``anchor``: the
+            # path length there), so a deposit's is |q - tx| + |c - q| exactly
+            state.update(idx=mi.UInt32((sample_index[idx.numpy()] + DIFFRACTED_RAY_KEY) % 2**32),
+                         anchor=sp)
         self.tracer.propagate(state, sink, self.reflections_after, from_transmitter=False)
 
 

@@ -1,8 +1,8 @@
 """One shoot-and-bounce pass over a CKM grid: every propagation layer of every cell at once.
 
 The fast CKM mode (docs/ckm-one-pass.md). Rays leave the transmitter on a Fibonacci lattice (each
-carries the solid angle ``4 pi / num_rays``) and bounce specularly through the radio mesh
-(:mod:`simart_pipeline.ckm.shoot_bounce`); where a segment crosses a grid height plane inside the
+carries the solid angle ``4 pi / num_rays``) and bounce through the radio mesh (specular and
+diffuse reflection, refraction: :mod:`simart_pipeline.ckm.shoot_bounce`); where a segment crosses a grid height plane inside the
 grid it deposits into that cell. Every deposit adds to the per-cell power moments of
 :mod:`simart_pipeline.ckm.moments`, the definitions the reference mode (PathSolver at cell
 centres) shares, so both modes write the same layers.
@@ -18,7 +18,9 @@ What a deposit adds (``p``: power gain, ``tau``: delay):
 - delays and directions are moved to the cell centre along the ray's image source ``s = o - L d``
   (``o`` the segment's origin, ``L`` the path length there): ``tau = |c - s| / c0``, arrival
   direction ``(c - s) / |c - s|``, departure direction the same mirrored back through the ray's
-  reflections. This is exact for line of sight and for specular paths off planar faces (the
+  reflections (refraction leaves all three unchanged; after a diffuse bounce the delay restarts at
+  the hit point and the departure is the launch direction, see below). This is exact for line of
+  sight and for specular paths off planar faces (the
   spherical form of the plane-wave correction ``tau + d . (c - hit) / c0``, equal to it at first
   order): one path gives zero spreads, and ToA is the centre's, not the cell's nearest corner;
 - delays are summed as excess over ``tau0 = |c - tx| / c0``, in float64 on the numpy side;
@@ -32,11 +34,20 @@ Cells are masked (zero moments) where the caller says ``indoor`` or where less t
 that share. Spreads and mean angles need ``min_hits_for_spread`` ray hits
 (:meth:`OnePassMoments.layers`).
 
-Handled: line of sight, specular reflection up to ``max_depth``, and first-order wedge and edge
-diffraction (:mod:`simart_pipeline.ckm.diffraction`: diffracted rays reflect specularly on).
-Refused with a ValueError: refraction, diffuse reflection (a material's scattering coefficient
-``S`` only lowers the specular field by ``sqrt(1 - S^2)``, as in Sionna RT; the diffuse energy is
-not traced).
+Handled: line of sight, specular reflection, diffuse reflection and refraction, up to
+``max_depth`` interactions, and first-order wedge and edge diffraction
+(:mod:`simart_pipeline.ckm.diffraction`: the diffracted rays go on through the same tracer). With
+specular reflection alone every ray reflects deterministically (a scattering coefficient ``S``
+lowers its field by ``sqrt(1 - S^2)``, as in Sionna RT). With diffuse reflection or refraction on,
+each ray draws ONE interaction per hit among the enabled ones, with probabilities proportional to
+their energies, and its field is divided by the square root of that probability (an unbiased
+estimator; Sionna's RadioMapSolver samples the radio material the same way): refraction goes
+straight through with the ITU slab transmission coefficients (image source and departure
+direction unchanged); diffuse reflection samples a direction from the material's scattering
+pattern and restarts the ray's delay at the hit point (``tau = (L_hit + |c - p'|) / c0``, ``p'``
+the hit point's image through later specular reflections), its departure direction fixed at the
+launch direction. Details: :mod:`simart_pipeline.ckm.shoot_bounce`. Random numbers are a hash of
+(lattice index, depth, purpose).
 Rays are traced in batches of lattice sub-ranges (bounded memory; the same rays whatever the
 batch size) and accumulated in float64 with numpy, so results depend on the batch size only
 through float64 summation order, and the same call twice gives bitwise-equal moments.
@@ -233,7 +244,7 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         ``y_m``: ``[ny]`` likewise; ``heights_m``: ``[num_heights]`` grid plane heights, m;
         ``cell_size_m``: needed only where both axes have a single cell (square cells)
     :param num_rays: rays on the Fibonacci lattice (each ``4 pi / num_rays`` sr)
-    :param max_depth: most specular reflections per ray (0: line of sight only)
+    :param max_depth: most interactions (reflections, refractions) per ray (0: line of sight only)
     :param codebook: ``[num_beams, num_tx_ant]`` complex unit-norm precoders, or None (no beams);
         ``tx_ant_positions_m``: ``[num_tx_ant, 3]`` m in the device frame (default: the scene's
         ``tx_array`` positions)
@@ -246,18 +257,19 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         (power normalised by the outdoor area the rays can reach)
     :param rx_polarization: None: isotropic receiver collecting the whole field ``|E|^2``
         (RadioMapSolver's); ``"V"`` / ``"H"``: an isotropic element of that polarisation
-    :param los, specular_reflection, diffraction, edge_diffraction: interaction types as in
-        Sionna RT (diffraction: :mod:`simart_pipeline.ckm.diffraction`, ``diffraction_samples``
-        points on the lit wedges, default ``num_rays``); ``refraction``, ``diffuse_reflection``:
-        not supported, True raises ValueError
+    :param los, specular_reflection, refraction, diffuse_reflection: interaction types as in
+        Sionna RT. With ``refraction`` (straight through, ITU slab transmission) or
+        ``diffuse_reflection`` (the material's scattering coefficient, XPD and pattern) each ray
+        draws one interaction per hit in proportion to the energies of the enabled ones, weighted
+        by ``1 / sqrt(probability)`` (unbiased; random numbers hashed from the lattice index and
+        the depth, so still deterministic and batch-independent): :mod:`.shoot_bounce`.
+    :param diffraction, edge_diffraction: first-order wedge (and free-edge) diffraction,
+        :mod:`simart_pipeline.ckm.diffraction`, with ``diffraction_samples`` points on the lit
+        wedges (default ``num_rays``)
     :return: :class:`OnePassMoments` of grid shape ``[num_heights, ny, nx]``
     """
     from simart_pipeline import engine
 
-    for flag, name in ((refraction, "refraction"), (diffuse_reflection, "diffuse_reflection")):
-        if flag:
-            raise ValueError(f"{name}: the one-pass CKM solver handles line of sight and specular "
-                             "reflection only; use the reference mode (PathSolver) for it")
     if rx_polarization not in (None, "V", "H"):
         raise ValueError(f"rx_polarization must be None, 'V' or 'H', got {rx_polarization!r}")
     if not 1 <= int(num_rays) < 2**32 or int(batch_rays) < 1:
@@ -280,9 +292,10 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                              f"station's); norms range {norms.min():.6g} .. {norms.max():.6g}")
     else:
         ant = None
-    depth = int(max_depth) if specular_reflection else 0
+    depth = int(max_depth) if (specular_reflection or refraction or diffuse_reflection) else 0
     tracer = Tracer(radio, tx_position_m, rot, grid, int(num_rays), depth, los, rx_polarization,
-                     with_beams=codebook is not None)
+                     with_beams=codebook is not None, specular=specular_reflection, refraction=refraction,
+                     diffuse=diffuse_reflection)
     acc = _Accumulator(grid, tx_position_m, codebook, ant, rot, radio.wavelength_m)
     with _InOrderWorker(acc) as sink:
         for start in range(0, int(num_rays), int(batch_rays)):

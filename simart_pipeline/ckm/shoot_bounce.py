@@ -3,12 +3,42 @@
 :class:`Tracer` launches rays from a transmitter on a Fibonacci lattice, carries each ray's
 polarised field (a complex world-frame 3-vector started from the transmit element pattern of the
 Sionna scene's ``tx_array``), intersects the radio mesh (Mitsuba's preliminary intersection plus
-our own face-normal table, a third of the cost of a full surface interaction), reflects
-specularly with the ITU-R P.2040 slab TE/TM coefficients of the hit object's radio material, and
+our own face-normal table, a third of the cost of a full surface interaction), and at each hit
+either reflects specularly with the ITU-R P.2040 slab TE/TM coefficients of the hit object's radio
+material (specular reflection alone: the original path, deterministic) or, where diffuse
+reflection or refraction is on, draws one interaction per ray (:meth:`Tracer._interact`). It
 hands every crossing of a grid height plane to a sink as numpy arrays (one call per segment and
 height). :func:`outdoor_fraction` measures how much of each cell lies outside buildings.
 Everything that depends on the scene, the grid or the device enters the kernels as opaque
 variables, so compiled kernels are reused across grids, tiles and transmitters.
+
+One interaction per ray and hit, as Sionna RT's RadioMapSolver samples the radio material
+(``RadioMaterial.sample``): with ``E`` the incident field, ``R``/``T`` the slab reflection and
+transmission (TE/TM) of the hit material, ``S`` its scattering coefficient, the energies are
+``w_spec = (1 - S^2) |R E|^2``, ``w_diff = S^2 |R E|^2``, ``w_refr = |T E|^2`` (only the enabled
+mechanisms), one is drawn with probability ``w_k / W`` (``W`` their sum) and its field is
+divided by ``sqrt(w_k / W)``: the estimator is unbiased and every ray leaves with ``|E'|^2 = W``
+(diffuse: times the pattern weight below). Sionna draws with the unpolarised ``|R_TE|^2 +
+|R_TM|^2`` and ``|T_TE|^2 + |T_TM|^2``; the ray's own polarised energies give the same mean with
+less variance. Random numbers are a counter-based hash of (lattice index, depth, purpose), so a
+ray's draws do not depend on the batch that holds it.
+
+- Refraction: straight through (``T`` of the ITU-R P.2040 single-layer slab, eq. 43b as Sionna
+  computes it, on the TE/TM basis of the face); direction, image source and departure direction
+  are unchanged.
+- Diffuse reflection: the scattered field of Sionna's model (``|E_s|^2 = (S Gamma)^2 |E|^2 f_s
+  * solid angle``, ``Gamma = |R E| / |E|``, polarisation rotated by the XPD matrix
+  ``[[sqrt(1 - K_x), -sqrt(K_x)], [sqrt(K_x), sqrt(1 - K_x)]]`` from the incident to the
+  scattered ``(theta-hat, phi-hat)`` basis). The direction is importance-sampled with a density
+  ``q``: cosine-weighted for the Lambertian pattern (``f_s / q = 1``), the pattern's own lobes
+  for the directive and backscattering patterns (``q = lambda (a_R + 1) v_R / 4 pi + (1 -
+  lambda) (a_I + 1) v_I / 4 pi``, directions below the face dropped), cosine-weighted for any
+  other registered pattern; the field is weighted by ``sqrt(f_s / q)`` (``f_s`` evaluated by
+  the material's own pattern object), which replaces Sionna's uniform hemisphere and its solid
+  angle ``2 pi``. The ray's delay restarts from the hit point: it carries ``anchor``, its path
+  length there, and deposits measure ``anchor + |c - s'|`` with ``s'`` the hit point's image
+  through the later specular reflections. Its departure direction is fixed at the launch
+  direction (the mirror columns become the rank-1 ``m_k = dep_k d``).
 """
 
 from __future__ import annotations
@@ -27,6 +57,9 @@ DIRECTION_QUANTUM = 2.0**-13
 Q_OFFSET = 1 << 13
 _GOLDEN_RATIO = (1.0 + 5.0**0.5) / 2.0
 _SPAWN_EPSILON = 89.0 * 2.0**-24  # Mitsuba's RayEpsilon for float32
+# Purposes of the per-ray random numbers (hashed with the lattice index and the depth)
+_DRAW_EVENT, _DRAW_DIR1, _DRAW_DIR2, _DRAW_LOBE = range(4)
+_RNG_SEED = 0x2545F491
 
 
 @dataclass(frozen=True)
@@ -164,6 +197,32 @@ def _material_tables(radio) -> tuple[np.ndarray, ...]:
     return tuple(table)
 
 
+def _scattering_tables(radio) -> tuple[np.ndarray, np.ndarray, np.ndarray, list]:
+    """Per Mitsuba shape id: the scattering coefficient ``S``, the XPD coefficient ``K_x`` and the
+    index of the scattering pattern in the returned list of distinct pattern objects (index 0:
+    Lambertian, also for every material with ``S = 0``, which never scatters)."""
+    from sionna.rt.radio_materials.scattering_pattern import LambertianPattern
+
+    patterns: list = [None]  # 0: Lambertian, sampled in closed form
+    rows = {}
+    for obj in radio.scene.objects.values():
+        m = obj.radio_material
+        s = float(np.array(getattr(m, "scattering_coefficient", 0.0)).ravel()[0])
+        kx = float(np.array(getattr(m, "xpd_coefficient", 0.0)).ravel()[0])
+        pat = getattr(m, "scattering_pattern", None)
+        k = 0
+        if s > 0 and pat is not None and not isinstance(pat, LambertianPattern):
+            k = next((i for i, q in enumerate(patterns) if q is pat), len(patterns))
+            if k == len(patterns):
+                patterns.append(pat)
+        rows[int(obj.object_id)] = (s, kx, k)
+    size = max(rows, default=0) + 1
+    s_tab, kx_tab, pat_tab = np.zeros(size), np.zeros(size), np.zeros(size, np.uint32)
+    for k, (s, kx, p) in rows.items():
+        s_tab[k], kx_tab[k], pat_tab[k] = s, kx, p
+    return s_tab, kx_tab, pat_tab, patterns
+
+
 def _face_normal_tables(mi_scene, source) -> tuple[np.ndarray, np.ndarray]:
     """Unit geometric normals of every triangle of every mesh ``[total_faces, 3]`` (Mitsuba's
     ``normalize(cross(p1 - p0, p2 - p0))``) and, per Mitsuba shape id, the index of its first face."""
@@ -228,11 +287,61 @@ def _slab_reflection(dr, cos_i, eta_re, eta_im, thickness, wavelength):
     return out
 
 
+def _slab_transmission(dr, cos_i, eta_re, eta_im, thickness, wavelength):
+    """ITU-R P.2040-3 single-layer slab transmission coefficients (eq. 43b, as Sionna RT's
+    ``itu_coefficients_single_layer_slab``): returns (T_TE, T_TM) as (re, im) pairs,
+    ``T = (1 - R'^2) e^{-jq} / (1 - R'^2 e^{-j2q})`` with the half-space ``R'`` and ``q`` of
+    :func:`_slab_reflection`."""
+    sr, si = _complex_sqrt(dr, eta_re - (1.0 - cos_i * cos_i), eta_im)
+    te = _cdiv(dr, cos_i - sr, -si, cos_i + sr, si)
+    ec_re, ec_im = eta_re * cos_i, eta_im * cos_i
+    tm = _cdiv(dr, ec_re - sr, ec_im - si, ec_re + sr, ec_im + si)
+    k = 2.0 * dr.pi * thickness / wavelength
+    mag = dr.exp(k * si)  # e^{-jq}: magnitude exp(k si), phase -k sr
+    s1, c1 = dr.sincos(k * sr)
+    yr, yi = mag * c1, -mag * s1
+    xr, xi = _cmul(yr, yi, yr, yi)  # e^{-j2q}
+    out = []
+    for rr, ri in (te, tm):
+        r2r, r2i = _cmul(rr, ri, rr, ri)
+        num = _cmul(1.0 - r2r, -r2i, yr, yi)
+        pr, pi_ = _cmul(r2r, r2i, xr, xi)
+        out.append(_cdiv(dr, num[0], num[1], 1.0 - pr, -pi_))
+    return out
+
+
+def _hash32(x):
+    """lowbias32 (C. Wellons' integer hash): a bijective avalanche mix of UInt32 (mod 2**32)."""
+    x = x ^ (x >> 16)
+    x = x * 0x7FEB352D
+    x = x ^ (x >> 15)
+    x = x * 0x846CA68B
+    return x ^ (x >> 16)
+
+
+def _key(depth: int, purpose: int) -> int:
+    """The hashed (depth, purpose) part of a random number's counter (Python int, UInt32)."""
+    x = (depth * 16 + purpose + _RNG_SEED) & 0xFFFFFFFF
+    for shift, mul in ((16, 0x7FEB352D), (15, 0x846CA68B)):
+        x = ((x ^ (x >> shift)) * mul) & 0xFFFFFFFF
+    return x ^ (x >> 16)
+
+
+def _theta_phi_hat(dr, mi, k):
+    """Spherical unit vectors theta-hat, phi-hat of direction ``k`` (phi = 0 on the z-axis)."""
+    rho = dr.sqrt(k.x * k.x + k.y * k.y)
+    safe = rho > 1e-7
+    cphi = dr.select(safe, k.x / rho, 1.0)
+    sphi = dr.select(safe, k.y / rho, 0.0)
+    return mi.Vector3f(k.z * cphi, k.z * sphi, -rho), mi.Vector3f(-sphi, cphi, 0.0)
+
+
 class Tracer:
     """Dr.Jit side: launch, intersect, deposit, reflect; hands deposits to numpy per segment."""
 
     def __init__(self, radio, tx_position_m, tx_rotation: np.ndarray, grid: Grid, num_rays: int,
-                 max_depth: int, los: bool, rx_polarization: str | None, with_beams: bool = False):
+                 max_depth: int, los: bool, rx_polarization: str | None, with_beams: bool = False, *,
+                 specular: bool = True, diffuse: bool = False, refraction: bool = False):
         import drjit as dr
         import mitsuba as mi
 
@@ -266,6 +375,14 @@ class Tracer:
         self.face_normals = mi.Vector3f(*(normals[:, k].astype(np.float32) for k in range(3)))
         self.face_offset = mi.UInt32(offsets.astype(np.uint32))
         self.mat = tuple(mi.Float(np.asarray(a, np.float32)) for a in (eta_re, eta_im, thick, spec))
+        self.specular, self.diffuse, self.refraction = bool(specular), bool(diffuse), bool(refraction)
+        # one drawn interaction per hit where diffuse reflection or refraction is on; specular
+        # reflection alone keeps the deterministic _reflect
+        self.sampled = self.diffuse or self.refraction
+        if self.sampled:
+            s_tab, kx_tab, pat_tab, self.patterns = _scattering_tables(radio)
+            self.scat = (mi.Float(s_tab.astype(np.float32)), mi.Float(kx_tab.astype(np.float32)),
+                         mi.UInt32(pat_tab))
         # p = |E|^2 * solid angle / |cos| * (lambda / 4 pi)^2 / cell area (RadioMapSolver's estimator)
         self.power_scale = opaque((4 * np.pi / num_rays) * (radio.wavelength_m / (4 * np.pi)) ** 2
                                   / (grid.dx * grid.dy))
@@ -290,8 +407,11 @@ class Tracer:
         o = dr.zeros(mi.Point3f, n) + mi.Point3f(*self.tx)
         eye = [mi.Vector3f(*(1.0 if i == k else 0.0 for i in range(3))) for k in range(3)]
         mirror = [dr.zeros(mi.Vector3f, n) + e for e in eye]  # columns of the reflection product
-        return dict(o=o, d=d, e_re=e_re, e_im=e_im, length=dr.zeros(mi.Float, n), m0=mirror[0],
-                    m1=mirror[1], m2=mirror[2])
+        st = dict(o=o, d=d, e_re=e_re, e_im=e_im, length=dr.zeros(mi.Float, n), m0=mirror[0],
+                  m1=mirror[1], m2=mirror[2])
+        if self.sampled:  # the lattice index keys the ray's random numbers; anchor: see _interact
+            st.update(idx=dr.arange(mi.UInt32, start, stop), anchor=dr.zeros(mi.Float, n))
+        return st
 
     def _deposits(self, st, t_hit, height, cell_offset) -> dict[str, np.ndarray] | None:
         dr, mi, g = self.dr, self.mi, self.g
@@ -308,10 +428,27 @@ class Tracer:
         col, row = dr.gather(mi.Float, col, idx), dr.gather(mi.Float, row, idx)
         d = take["d"]
         centre = mi.Point3f(g["x_lo"] + (col + 0.5) * g["dx"], g["y_lo"] + (row + 0.5) * g["dy"], height)
-        v = centre - (take["o"] - take["length"] * d)  # cell centre minus the image source
-        dist = dr.norm(v)
-        d_c = v / dist
-        d_dep = dr.normalize(mi.Vector3f(dr.dot(take["m0"], d_c), dr.dot(take["m1"], d_c), dr.dot(take["m2"], d_c)))
+        if not self.sampled:
+            v = centre - (take["o"] - take["length"] * d)  # cell centre minus the image source
+            dist = dr.norm(v)
+            d_c = v / dist
+            # normalised: a diffracted ray's mirror columns are rank one (DiffractionSampler)
+            d_dep = dr.normalize(mi.Vector3f(dr.dot(take["m0"], d_c), dr.dot(take["m1"], d_c),
+                                             dr.dot(take["m2"], d_c)))
+        else:
+            # after a diffuse bounce the path restarts at the hit point: its image s' through the
+            # later reflections lies (length - anchor) behind the segment's origin, and the delay
+            # is anchor + |c - s'|; anchor = 0 (never diffused): the image source as above
+            anchor = take["anchor"]
+            v = centre - (take["o"] - (take["length"] - anchor) * d)
+            r = dr.norm(v)
+            dist = anchor + r
+            d_c = v / r
+            # a diffused ray's mirror columns are rank 1 (m_k = dep_k d): its departure is fixed,
+            # read along its own direction; unit length restored for both kinds
+            d_sel = dr.select(anchor > 0, d, d_c)
+            d_dep = dr.normalize(mi.Vector3f(dr.dot(take["m0"], d_sel), dr.dot(take["m1"], d_sel),
+                                             dr.dot(take["m2"], d_sel)))
         e_re, e_im = take["e_re"], take["e_im"]
         if self.rx_polarization is None:
             field2 = dr.squared_norm(e_re) + dr.squared_norm(e_im)
@@ -369,14 +506,147 @@ class Tracer:
         dr.eval(*out.values())
         return out
 
+    def _uniform(self, idx, depth: int, purpose: int):
+        """Uniform float in [0, 1) (24 bits) from the ray's lattice index, the depth and a purpose."""
+        dr, mi = self.dr, self.mi
+        h = _hash32(_hash32(idx + _RNG_SEED) ^ dr.opaque(mi.UInt32, _key(depth, purpose)))
+        return mi.Float(h >> 8) * (2.0**-24)
+
+    def _diffuse_direction(self, d, n, d_r, pat, idx, depth):
+        """Scattered direction and pattern weight ``f_s / q`` per ray (see the module docstring)."""
+        dr, mi = self.dr, self.mi
+        u1, u2 = self._uniform(idx, depth, _DRAW_DIR1), self._uniform(idx, depth, _DRAW_DIR2)
+        frame = mi.Frame3f(n)
+        ko_cos = frame.to_world(mi.warp.square_to_cosine_hemisphere(mi.Point2f(u1, u2)))
+        ko, weight = ko_cos, mi.Float(1.0)  # Lambertian f_s = cos / pi, sampled with q = cos / pi
+        if len(self.patterns) == 1:
+            return ko, weight
+        from sionna.rt.radio_materials.scattering_pattern import BackscatteringPattern
+
+        ki_local = frame.to_local(d)
+        for k, pattern in enumerate(self.patterns[1:], start=1):
+            if isinstance(pattern, BackscatteringPattern):  # directive too (lambda = 1)
+                lam = float(np.array(pattern.lambda_).ravel()[0])
+                a_r, a_i = int(pattern.alpha_r), int(pattern.alpha_i)
+                lobe_r = self._uniform(idx, depth, _DRAW_LOBE) < lam
+                alpha = dr.select(lobe_r, float(a_r), float(a_i))
+                axis = dr.select(lobe_r, d_r, -d)
+                # lobe (1 + cos psi)^a / 2^a about its axis: ((1 + c) / 2) = u^(1 / (a + 1))
+                c = dr.clip(2.0 * dr.exp(dr.log(u1) / (alpha + 1.0)) - 1.0, -1.0, 1.0)
+                sp, cp = dr.sincos(2.0 * dr.pi * u2)
+                sn = dr.sqrt(dr.maximum(1.0 - c * c, 0.0))
+                ko_k = mi.Frame3f(axis).to_world(mi.Vector3f(sn * cp, sn * sp, c))
+                v_r = dr.power(dr.maximum(0.5 * (1.0 + dr.dot(d_r, ko_k)), 0.0), a_r)
+                v_i = dr.power(dr.maximum(0.5 * (1.0 - dr.dot(d, ko_k)), 0.0), a_i)
+                q = (lam * (a_r + 1) * v_r + (1.0 - lam) * (a_i + 1) * v_i) * (1.0 / (4.0 * np.pi))
+            else:  # any other registered pattern: cosine-weighted, weighted by f_s / q
+                ko_k = ko_cos
+                q = dr.maximum(frame.to_local(ko_cos).z, 0.0) * (1.0 / np.pi)
+            up = (dr.dot(ko_k, n) > 0) & (q > 0)
+            fs = pattern(ki_local, frame.to_local(ko_k))
+            sel = pat == k
+            ko = dr.select(sel, ko_k, ko)
+            weight = dr.select(sel, dr.select(up, fs / dr.select(up, q, 1.0), 0.0), weight)
+        return ko, weight
+
+    def _interact(self, st, t, ids, prim, keep, depth: int):
+        """One interaction per ray, drawn among the enabled ones in proportion to their energies
+        and weighted by ``1 / sqrt(probability)`` (module docstring); rays with no interaction
+        left (no energy, a diffuse direction below the face) stop."""
+        dr, mi = self.dr, self.mi
+        d = st["d"]
+        face = dr.gather(mi.UInt32, self.face_offset, ids, keep) + dr.select(keep, prim, 0)
+        n = dr.gather(mi.Vector3f, self.face_normals, face, keep)
+        n = dr.select(dr.dot(d, n) > 0, -n, n)  # faces the side the ray comes from
+        cos_i = dr.clip(-dr.dot(d, n), 0.0, 1.0)
+        eta_re, eta_im, thick, _ = (dr.gather(mi.Float, table, ids, keep) for table in self.mat)
+        s_coef, kx, pat = (dr.gather(type(table), table, ids, keep) for table in self.scat)
+        e_s = dr.cross(d, n)
+        ls = dr.norm(e_s)
+        e_s = dr.select(ls > 1e-6, e_s / dr.maximum(ls, 1e-30), mi.coordinate_system(n)[0])
+        d_r = d + 2.0 * cos_i * n
+        e_pi, e_pr = dr.cross(e_s, d), dr.cross(e_s, d_r)
+        er, ei = st["e_re"], st["e_im"]
+        s_r, s_i = dr.dot(er, e_s), dr.dot(ei, e_s)
+        p_r, p_i = dr.dot(er, e_pi), dr.dot(ei, e_pi)
+        (te_r, te_i), (tm_r, tm_i) = _slab_reflection(dr, cos_i, eta_re, eta_im, thick, self.wavelength)
+        a_r, a_i = _cmul(te_r, te_i, s_r, s_i)
+        b_r, b_i = _cmul(tm_r, tm_i, p_r, p_i)
+        e_refl = a_r * a_r + a_i * a_i + b_r * b_r + b_i * b_i  # |R E|^2
+        s2 = s_coef * s_coef
+        zero = dr.zeros(mi.Float, dr.width(cos_i))
+        w_spec = (1.0 - s2) * e_refl if self.specular else zero
+        w_diff = s2 * e_refl if self.diffuse else zero
+        if self.refraction:
+            (ue_r, ue_i), (um_r, um_i) = _slab_transmission(dr, cos_i, eta_re, eta_im, thick, self.wavelength)
+            c_r, c_i = _cmul(ue_r, ue_i, s_r, s_i)
+            g_r, g_i = _cmul(um_r, um_i, p_r, p_i)
+            w_refr = c_r * c_r + c_i * c_i + g_r * g_r + g_i * g_i  # |T E|^2
+        else:
+            w_refr = zero
+        total = w_spec + w_diff + w_refr
+        u = self._uniform(st["idx"], depth, _DRAW_EVENT) * total
+        spec = u < w_spec
+        diff = ~spec & (u < w_spec + w_diff)
+        refr = ~spec & ~diff
+        chosen = dr.select(spec, w_spec, dr.select(diff, w_diff, w_refr))
+        alive = keep & (total > 0) & (chosen > 0)
+        p = st["o"] + t * d
+        offset = (1.0 + dr.max(dr.abs(p))) * _SPAWN_EPSILON
+        length = st["length"] + t
+        # specular: R E, and refraction: T E, each times sqrt(W / |R E|^2) or sqrt(W / |T E|^2)
+        k_spec = dr.sqrt(total / dr.select(spec & alive, e_refl, 1.0))
+        new_re = k_spec * (a_r * e_s + b_r * e_pr)
+        new_im = k_spec * (a_i * e_s + b_i * e_pr)
+        new_d, new_o = d_r, mi.Point3f(p + offset * n)
+        m = [st[k] - 2.0 * dr.dot(n, st[k]) * n for k in ("m0", "m1", "m2")]
+        anchor = st["anchor"]
+        if self.refraction:
+            k_refr = dr.sqrt(total / dr.select(refr & alive, w_refr, 1.0))
+            new_re = dr.select(refr, k_refr * (c_r * e_s + g_r * e_pi), new_re)
+            new_im = dr.select(refr, k_refr * (c_i * e_s + g_i * e_pi), new_im)
+            new_d = dr.select(refr, d, new_d)
+            new_o = dr.select(refr, mi.Point3f(p - offset * n), new_o)
+            m = [dr.select(refr, st[k], mk) for k, mk in zip(("m0", "m1", "m2"), m)]
+        if self.diffuse:
+            ko, w_pat = self._diffuse_direction(d, n, d_r, pat, st["idx"], depth)
+            alive &= ~diff | (w_pat > 0)
+            # XPD rotation from the incident (theta, phi) basis to the scattered one, magnitude
+            # sqrt(W f_s / q) (Sionna: S Gamma sqrt(f_s * solid angle) / sqrt(probability))
+            th_i, ph_i = _theta_phi_hat(dr, mi, d)
+            th_o, ph_o = _theta_phi_hat(dr, mi, ko)
+            e2 = dr.squared_norm(er) + dr.squared_norm(ei)
+            scale = dr.sqrt(total * w_pat / dr.select(diff & alive, e2, 1.0))
+            ca, cb = dr.sqrt(1.0 - kx), dr.sqrt(kx)
+            out = []
+            for e in (er, ei):
+                et, ep = dr.dot(e, th_i), dr.dot(e, ph_i)
+                out.append(scale * ((ca * et - cb * ep) * th_o + (cb * et + ca * ep) * ph_o))
+            new_re = dr.select(diff, out[0], new_re)
+            new_im = dr.select(diff, out[1], new_im)
+            new_d = dr.select(diff, ko, new_d)
+            new_o = dr.select(diff, mi.Point3f(p + offset * n), new_o)
+            dep = [dr.dot(st[k], d) for k in ("m0", "m1", "m2")]  # the launch direction
+            m = [dr.select(diff, dk * ko, mk) for dk, mk in zip(dep, m)]
+            anchor = dr.select(diff, length, anchor)
+        new = dict(o=new_o, d=new_d, e_re=new_re, e_im=new_im, length=length, m0=m[0], m1=m[1], m2=m[2],
+                   idx=st["idx"], anchor=anchor)
+        dr.eval(*new.values(), alive)
+        idx = dr.compress(alive)
+        if dr.width(idx) == 0:
+            return None
+        out = {k: dr.gather(type(v), v, idx) for k, v in new.items()}
+        dr.eval(*out.values())
+        return out
+
     def trace(self, start: int, stop: int, sink) -> None:
         """Trace lattice rays ``start..stop-1``; ``sink(deposits, line_of_sight)`` per crossing set."""
         if stop > start:
             self.propagate(self.launch(start, stop), sink, self.max_depth, from_transmitter=True)
 
     def propagate(self, st, sink, max_depth: int, from_transmitter: bool) -> None:
-        """Trace ray state ``st`` (:meth:`launch`'s form) through up to ``max_depth`` specular
-        reflections. ``from_transmitter``: its first segment is line of sight (deposited only
+        """Trace ray state ``st`` (:meth:`launch`'s form) through up to ``max_depth``
+        interactions. ``from_transmitter``: its first segment is line of sight (deposited only
         with ``los``, and flagged so); False: rays of a secondary source (diffraction), every
         segment deposited, none line of sight."""
         dr, mi = self.dr, self.mi
@@ -398,7 +668,10 @@ class Tracer:
                         sink(dep, line_of_sight)
             if depth == max_depth:
                 break
-            st = self._reflect(st, t_hit, ids, prim, hit)
+            if self.sampled:
+                st = self._interact(st, t_hit, ids, prim, hit, depth)
+            else:
+                st = self._reflect(st, t_hit, ids, prim, hit)
             if st is None:
                 break
 
