@@ -525,6 +525,34 @@ def test_diffraction_agrees_with_pathsolver_in_the_shadow_of_a_block(tmp_path, g
     assert np.median(np.abs(err)) < 0.5 and np.percentile(np.abs(err), 95) < 2.0, err
 
 
+def test_diffraction_with_a_metal_ground_obeys_image_theory(tmp_path):
+    """A block on a metal ground (|R| = 1 to 1e-4), depth 2: in the block's shadow every path is
+    one diffraction, with or without one ground reflection before or after it. By image theory
+    their incoherent sum equals, without the ground and with the block mirrored below it, the
+    diffraction at the receive height plus that at the mirrored height (each path seen from the
+    mirrored receiver is one with a ground bounce). The block reaches below the ground so that
+    its bottom edges, which a real ground buries, are not wedges. PathSolver 2.2 gives the
+    (diffraction, reflection) paths of a geometry like this one 8 dB below this identity
+    (docs/ckm-one-pass.md), so the reference here is the closed form, not PathSolver."""
+    ground = _block(10.0, 30.0, -20.0, 20.0, -5.0, 40.0)   # its bottom edges hidden below the ground
+    mirrored = _block(10.0, 30.0, -20.0, 20.0, -40.0, 40.0)
+    with_ground = RadioScene.from_config(_write_scene(tmp_path / "a", {"b": (ground, "concrete"),
+                                                                       "g": (_ground(), "metal")}, 0.2), _cfg())
+    free = RadioScene.from_config(_write_scene(tmp_path / "b", {"b": (mirrored, "concrete")}, 0.2), _cfg())
+    tx = np.array([0.0, 0.0, 10.0])
+    x, y = _axes(16.0, 8, 16.0, 6, 2.0)
+    n = 2_000_000
+    kw = dict(diffraction=True, rx_polarization=None, min_hits_for_power=1)
+    a = op.one_pass_moments(with_ground, tx, np.zeros(3), x, y, [1.5], n, 2, **kw).power[0]
+    b_up, b_down = (op.one_pass_moments(free, tx, np.zeros(3), x, y, [h], n, 1, specular_reflection=False,
+                                        **kw).power[0] for h in (1.5, -1.5))
+    lit = op.one_pass_moments(with_ground, tx, np.zeros(3), x, y, [1.5], n, 2, rx_polarization=None).power[0]
+    shadow = (lit == 0) & (b_up > 0)
+    assert shadow.sum() >= 20
+    err = 10 * np.log10(a[shadow] / (b_up + b_down)[shadow])
+    assert np.median(np.abs(err)) < 0.3 and np.percentile(np.abs(err), 95) < 1.0, err
+
+
 def test_diffraction_fills_the_street_canyon_as_radio_map_solver_does():
     """Sionna's street canyon, first-order diffraction (max_depth 1, as RadioMapSolver traces
     it): every outdoor cell that RadioMapSolver reaches, the one-pass map reaches, and the other

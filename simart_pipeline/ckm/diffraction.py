@@ -43,8 +43,9 @@ first); docs/ckm-one-pass.md gives the measured effect.
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 
-from simart_pipeline.ckm.shoot_bounce import Grid, fibonacci_directions
+from simart_pipeline.ckm.shoot_bounce import _SPAWN_EPSILON, Grid, _cmul, _slab_reflection, fibonacci_directions
 
 __all__ = ["DiffractionSampler", "WEDGE_KEY_M"]
 
@@ -63,10 +64,12 @@ class DiffractionSampler:
     dict form of :class:`simart_pipeline.ckm.shoot_bounce.Tracer`."""
 
     def __init__(self, radio, tracer, tx_position_m, tx_rotation: np.ndarray, grid: Grid, reflections_after: int,
-                 edge_diffraction: bool):
+                 edge_diffraction: bool, reflections_before: int = 0):
         import drjit as dr
         import mitsuba as mi
 
+        if reflections_before not in (0, 1):
+            raise ValueError(f"reflections_before must be 0 or 1, got {reflections_before}")
         self.dr, self.mi = dr, mi
         self.radio, self.scene = radio, radio.scene.mi_scene
         self.tx = np.asarray(tx_position_m, np.float64)
@@ -74,79 +77,167 @@ class DiffractionSampler:
         self.grid = grid
         self.tracer = tracer
         self.reflections_after = int(reflections_after)
+        self.reflections_before = int(reflections_before)
         self.edge_diffraction = bool(edge_diffraction)
-        self.wedges = None
         self.num_wedges = 0
+        self._wedge_np: dict[str, np.ndarray] = {}
 
     # -- step 1 ---------------------------------------------------------------------------------
     def find_wedges(self, num_rays: int, batch_rays: int) -> int:
-        """Wedges of the triangles that ``num_rays`` lattice rays from the transmitter hit; returns how many."""
+        """Wedges of the triangles that ``num_rays`` lattice rays from the transmitter hit first
+        (source: the transmitter) and, with ``reflections_before``, after one specular reflection
+        (source: the transmitter's image in the reflecting face's plane); returns how many
+        (source, wedge) pairs."""
+        dr, mi = self.dr, self.mi
+        tr = self.tracer
+        tx = mi.Point3f(*(float(v) for v in self.tx))
+        direct, reflected = [], []
+        for start in range(0, int(num_rays), int(batch_rays)):
+            stop = min(start + int(batch_rays), int(num_rays))
+            d = fibonacci_directions(start, stop, int(num_rays))
+            o = dr.zeros(mi.Point3f, stop - start) + tx
+            pi = self.scene.ray_intersect_preliminary(mi.Ray3f(o, d), False)
+            hit = pi.is_valid()
+            ids = dr.reinterpret_array(mi.UInt32, pi.shape)
+            direct.append(_unique_triangles(dr, mi, ids, pi.prim_index, hit))
+            if self.reflections_before:
+                face = dr.gather(mi.UInt32, tr.face_offset, ids, hit) + dr.select(hit, pi.prim_index, 0)
+                n = dr.gather(mi.Vector3f, tr.face_normals, face, hit)
+                n = dr.select(dr.dot(d, n) > 0, -n, n)  # towards the transmitter's side
+                p = o + dr.select(hit, pi.t, 0.0) * d
+                d_r = d - 2.0 * dr.dot(d, n) * n
+                o_r = p + (1.0 + dr.max(dr.abs(p))) * _SPAWN_EPSILON * n
+                pi2 = self.scene.ray_intersect_preliminary(mi.Ray3f(o_r, d_r), False, hit)
+                hit2 = hit & pi2.is_valid()
+                tri = _unique_triangles(dr, mi, dr.reinterpret_array(mi.UInt32, pi2.shape), pi2.prim_index, hit2,
+                                        extra=face)
+                reflected.append(tri)
+        cols = self._candidates(np.unique(np.concatenate(direct), axis=0), None)
+        if self.reflections_before and reflected:
+            pairs = np.concatenate(reflected)
+            pairs[:, 2] = self._canonical_faces(pairs[:, 2])  # one source per reflecting plane
+            pairs = np.unique(pairs, axis=0)
+            cols = {k: np.concatenate([cols[k], v]) for k, v in self._candidates(pairs[:, :2], pairs[:, 2]).items()}
+        self._wedge_np = cols
+        self.num_wedges = len(cols["length"])
+        return self.num_wedges
+
+    def _candidates(self, triangles: np.ndarray, reflector_face: np.ndarray | None) -> dict[str, np.ndarray]:
+        """Wedges of ``triangles`` ``[n, 2]`` (shape id, primitive) lit from the transmitter or,
+        per row, from its image in the plane of global face ``reflector_face``: convex or (with
+        ``edge_diffraction``) free edges, the source outside the wedge, each (source, edge) once."""
         dr, mi = self.dr, self.mi
         from sionna.rt.constants import EPSILON_FLOAT
         from sionna.rt.utils.wedges import wedge_geometry
 
-        tx = mi.Point3f(*(float(v) for v in self.tx))
-        hit = []
-        for start in range(0, int(num_rays), int(batch_rays)):
-            stop = min(start + int(batch_rays), int(num_rays))
-            d = fibonacci_directions(start, stop, int(num_rays))
-            pi = self.scene.ray_intersect_preliminary(mi.Ray3f(dr.zeros(mi.Point3f, stop - start) + tx, d), False)
-            idx = dr.compress(pi.is_valid())
-            ids = dr.gather(mi.UInt32, dr.reinterpret_array(mi.UInt32, pi.shape), idx)
-            prim = dr.gather(mi.UInt32, pi.prim_index, idx)
-            dr.eval(ids, prim)
-            hit.append(np.unique((ids.numpy().astype(np.uint64) << np.uint64(32)) | prim.numpy().astype(np.uint64)))
-        tri = np.unique(np.concatenate(hit)) if hit else np.zeros(0, np.uint64)
-        if len(tri) == 0:
-            self.num_wedges = 0
-            return 0
-        shape_id = np.repeat((tri >> np.uint64(32)).astype(np.uint32), 3)
-        prim = np.repeat((tri & np.uint64(0xFFFFFFFF)).astype(np.uint32), 3)
-        local_edge = np.tile(np.arange(3, dtype=np.uint32), len(tri))
+        if len(triangles) == 0:
+            return {k: np.zeros((0,) + ((3,) if k in _VEC else ()), _DTYPES.get(k, np.float64)) for k in _KEYS}
+        normals = self.tracer_normals()
+        if reflector_face is None:
+            src = np.broadcast_to(self.tx, (len(triangles), 3)).astype(np.float64)
+            plane_n, plane_off = np.zeros((len(triangles), 3)), np.zeros(len(triangles))
+            order = np.zeros(len(triangles), np.int64)
+        else:
+            plane_n = normals[reflector_face.astype(np.int64)]
+            plane_off = np.einsum("ij,ij->i", plane_n, self._face_point(reflector_face))
+            side = plane_n @ self.tx - plane_off
+            plane_n, plane_off = plane_n * np.sign(side)[:, None], plane_off * np.sign(side)  # towards the tx
+            src = self.tx - 2.0 * (plane_n @ self.tx - plane_off)[:, None] * plane_n
+            order = np.ones(len(triangles), np.int64)
+        rep = lambda a: np.repeat(a, 3, axis=0)  # noqa: E731 three edges per triangle
+        shape_id, prim = rep(triangles[:, 0]).astype(np.uint32), rep(triangles[:, 1]).astype(np.uint32)
+        local_edge = np.tile(np.arange(3, dtype=np.uint32), len(triangles))
+        src3 = rep(src)
         mesh = mi.MeshPtr(dr.reinterpret_array(mi.ShapePtr, mi.UInt32(shape_id)))
         w = wedge_geometry(mesh, mi.UInt32(prim), mi.UInt32(local_edge))
+        s = mi.Point3f(*(mi.Float(src3[:, k].astype(np.float32)) for k in range(3)))
         mid = w.o + 0.5 * w.length * w.e_hat
-        w.swap_faces(dr.dot(mid - tx, w.n0) > 0)  # the transmitter sees the 0-face, as in Sionna
-        k = tx - mid
+        w.swap_faces(dr.dot(mid - s, w.n0) > 0)  # the source sees the 0-face, as in Sionna
+        k = s - mid
         valid = (w.length > 0) & ((dr.dot(k, w.n0) > EPSILON_FLOAT) | (dr.dot(k, w.nn) > EPSILON_FLOAT))
         valid &= dr.dot(w.n0, w.nn) < 1.0 - 1e-4  # a flat edge (two coplanar faces) does not diffract
         if not self.edge_diffraction:
             valid &= w.primn != w.prim0
-        cols = [mi.UInt32(shape_id), w.prim0, w.primn, w.local_edge]
-        cols += [getattr(w, k)[c] for k in ("o", "e_hat", "n0", "nn") for c in range(3)] + [w.length]
-        dr.eval(valid, *cols)
+        dr.eval(valid, w)
         keep = np.asarray(valid.numpy(), bool)
-        a = [np.asarray(c.numpy())[keep] for c in cols]
-        o_np = np.stack(a[4:7], -1).astype(np.float64)
-        e_np = o_np + np.stack(a[7:10], -1) * a[-1][:, None].astype(np.float64)
+        out = {"shape": shape_id, "prim0": w.prim0.numpy(), "primn": w.primn.numpy(), "local_edge": w.local_edge.numpy(),
+               "o": np.stack([getattr(w.o, c).numpy() for c in "xyz"], -1),
+               "e_hat": np.stack([getattr(w.e_hat, c).numpy() for c in "xyz"], -1),
+               "n0": np.stack([getattr(w.n0, c).numpy() for c in "xyz"], -1),
+               "nn": np.stack([getattr(w.nn, c).numpy() for c in "xyz"], -1),
+               "length": w.length.numpy(), "src": src3, "plane_n": rep(plane_n), "plane_off": rep(plane_off),
+               "order": rep(order)}
+        out = {k: np.asarray(v)[keep] for k, v in out.items()}
+        o_np = out["o"].astype(np.float64)
+        e_np = o_np + out["e_hat"] * out["length"][:, None].astype(np.float64)
         first_o = _lex_less(o_np, e_np)[:, None]  # the key does not depend on the edge's direction
         lo, hi = np.where(first_o, o_np, e_np), np.where(first_o, e_np, o_np)
-        key = np.column_stack([a[0].astype(np.int64), np.round(np.column_stack([lo, hi]) / WEDGE_KEY_M).astype(np.int64)])
+        key = np.column_stack([out["shape"].astype(np.int64), np.round(np.column_stack([lo, hi]) / WEDGE_KEY_M),
+                               np.round(out["src"] / WEDGE_KEY_M)]).astype(np.int64)
         _, first = np.unique(key, axis=0, return_index=True)  # sorted keys: a fixed order
-        self._wedge_np = [c[first] for c in a]
-        self.num_wedges = len(first)
-        return self.num_wedges
+        return {k: v[first] for k, v in out.items()}
+
+    def _canonical_faces(self, faces: np.ndarray) -> np.ndarray:
+        """Each face replaced by the lowest-numbered face of its plane (normal within 1e-5, offset
+        within 1e-5 m): coplanar triangles of one wall give one image source, bit for bit, so a
+        (source, wedge) pair is never sampled twice."""
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+        from scipy.spatial import cKDTree
+
+        uniq, inverse = np.unique(faces, return_inverse=True)
+        n = self.tracer_normals()[uniq]
+        n = n * np.where(n @ self.tx - np.einsum("ij,ij->i", n, self._face_point(uniq)) < 0, -1.0, 1.0)[:, None]
+        off = np.einsum("ij,ij->i", n, self._face_point(uniq))
+        pairs = cKDTree(np.column_stack([n, off])).query_pairs(1e-5, output_type="ndarray")
+        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(uniq), len(uniq)))
+        _, label = connected_components(graph, directed=False)
+        lowest = np.full(label.max() + 1, np.iinfo(np.int64).max)
+        np.minimum.at(lowest, label, uniq)
+        return lowest[label][inverse]
+
+    def tracer_normals(self) -> np.ndarray:
+        if not hasattr(self, "_normals"):
+            t = self.tracer.face_normals
+            self._normals = np.stack([t.x.numpy(), t.y.numpy(), t.z.numpy()], -1).astype(np.float64)
+        return self._normals
+
+    def _face_point(self, face: np.ndarray) -> np.ndarray:
+        """A vertex of each global face (for the plane offset)."""
+        if not hasattr(self, "_first_vertex"):
+            pts = []
+            for shape in self.scene.shapes():
+                v = shape.vertex_positions_buffer().numpy().reshape(-1, 3).astype(np.float64)
+                f = shape.faces_buffer().numpy().reshape(-1, 3).astype(np.int64)
+                pts.append(v[f[:, 0]])
+            self._first_vertex = np.concatenate(pts)
+        return self._first_vertex[face.astype(np.int64)]
 
     def _wedge_geometry(self, index: np.ndarray):
         dr, mi = self.dr, self.mi
         from sionna.rt.utils.wedges import WedgeGeometry
 
-        c = [a[index] for a in self._wedge_np]
-        f = [mi.Float(np.asarray(v, np.float32)) for v in c[4:]]
-        shape = mi.MeshPtr(dr.reinterpret_array(mi.ShapePtr, mi.UInt32(c[0])))
-        return WedgeGeometry(shape, mi.UInt32(c[1]), mi.UInt32(c[2]), mi.UInt32(c[3]),
-                             mi.Point3f(*f[0:3]), mi.Vector3f(*f[3:6]), f[12],
-                             mi.Normal3f(*f[6:9]), mi.Normal3f(*f[9:12]))
+        c = {k: v[index] for k, v in self._wedge_np.items()}
+        vec = lambda a, t=mi.Vector3f: t(*(mi.Float(a[:, j].astype(np.float32)) for j in range(3)))  # noqa: E731
+        shape = mi.MeshPtr(dr.reinterpret_array(mi.ShapePtr, mi.UInt32(c["shape"])))
+        return WedgeGeometry(shape, mi.UInt32(c["prim0"]), mi.UInt32(c["primn"]), mi.UInt32(c["local_edge"]),
+                             vec(c["o"], mi.Point3f), vec(c["e_hat"]), mi.Float(c["length"].astype(np.float32)),
+                             vec(c["n0"], mi.Normal3f), vec(c["nn"], mi.Normal3f))
 
     # -- step 2 ---------------------------------------------------------------------------------
     def allocation(self, num_samples: int) -> np.ndarray:
-        """Samples per wedge: proportional to length, largest remainders, at least one each."""
-        length = self._wedge_np[-1].astype(np.float64)
-        share = num_samples * length / length.sum()
-        n = np.floor(share).astype(np.int64)
-        left = int(num_samples - n.sum())
-        if left > 0:
-            n[np.argsort(-(share - n), kind="stable")[:left]] += 1
+        """Samples per (source, wedge): each source order (direct, one reflection before) gets
+        ``num_samples``, spread in proportion to length, largest remainders, at least one each."""
+        length = self._wedge_np["length"].astype(np.float64)
+        n = np.zeros(len(length), np.int64)
+        for order in np.unique(self._wedge_np["order"]):
+            sel = np.flatnonzero(self._wedge_np["order"] == order)
+            share = num_samples * length[sel] / length[sel].sum()
+            k = np.floor(share).astype(np.int64)
+            left = int(num_samples - k.sum())
+            if left > 0:
+                k[np.argsort(-(share - k), kind="stable")[:left]] += 1
+            n[sel] = k
         return np.maximum(n, 1)
 
     def trace(self, num_samples: int, batch: int, sink) -> None:
@@ -162,26 +253,90 @@ class DiffractionSampler:
             n_w = counts[w].astype(np.float64)
             u = (kk + 0.5) / n_w
             v = np.mod(kk / _GOLDEN_RATIO, 1.0)
-            self._trace_batch(w, u, v, n_w, np.arange(start, start + len(w)), sink)
+            index = np.arange(start, start + len(w))
+            order = self._wedge_np["order"][w]
+            for o in (0, 1):
+                sel = order == o
+                if sel.any():
+                    self._trace_batch(w[sel], u[sel], v[sel], n_w[sel], index[sel], o, sink)
 
-    def _trace_batch(self, w_index, u, v, n_w, sample_index, sink) -> None:
+    def _incident(self, q, q_off, src, plane_n, plane_off, order: int):
+        """Where the source's field reaches ``q``: (valid, Jones vector of the field arriving at
+        ``q`` in Sionna's implicit basis of its direction, that direction ``ki``, the unfolded
+        distance ``s'``, the departure direction at the transmitter)."""
         dr, mi = self.dr, self.mi
         from sionna.rt.antenna_pattern import antenna_pattern_to_world_implicit
+        from sionna.rt.utils.jones import implicit_basis_vector
+        from sionna.rt.utils.ray_tracing import spawn_ray_to
+
+        tr = self.tracer
+        pattern = self.radio.scene.tx_array.antenna_pattern.patterns[0]
+        to_world = mi.Matrix3f(*(float(self.rot[r, c]) for r in range(3) for c in range(3)))
+        n_q = dr.width(q)
+        tx = dr.zeros(mi.Point3f, n_q) + mi.Point3f(*(float(x) for x in self.tx))
+        ki = dr.normalize(q - src)
+        s_prime = dr.norm(q - src)
+        if order == 0:
+            ok = ~self.scene.ray_test(spawn_ray_to(tx, q)) & ~self.scene.ray_test(spawn_ray_to(tx, q_off))
+            return ok, antenna_pattern_to_world_implicit(pattern, to_world, ki, direction="out"), ki, s_prime, ki
+        # one reflection: the path tx -> r -> q with r where q's line to the image source crosses
+        # the plane; it exists when r lies on a face of that plane and both legs are clear
+        dist_q = dr.dot(plane_n, q) - plane_off
+        cos_q = dr.dot(plane_n, ki)
+        ok = (dist_q > 0) & (cos_q > 1e-6)
+        t_r = dist_q / dr.select(ok, cos_q, 1.0)
+        r = q - t_r * ki
+        probe = 1e-2
+        pi = self.scene.ray_intersect_preliminary(mi.Ray3f(r + probe * plane_n, -plane_n), False, ok)
+        ok &= pi.is_valid() & (dr.abs(pi.t - probe) < 1e-3)
+        ids = dr.reinterpret_array(mi.UInt32, pi.shape)
+        face = dr.gather(mi.UInt32, tr.face_offset, ids, ok) + dr.select(ok, pi.prim_index, 0)
+        ok &= dr.abs(dr.dot(dr.gather(mi.Vector3f, tr.face_normals, face, ok), plane_n)) > 1.0 - 1e-4
+        r_off = r + 1e-3 * plane_n
+        ok &= ~self.scene.ray_test(spawn_ray_to(tx, r_off), ok)
+        ok &= ~self.scene.ray_test(spawn_ray_to(r_off, q), ok) & ~self.scene.ray_test(spawn_ray_to(r_off, q_off), ok)
+        dep = dr.normalize(r - tx)
+        e = antenna_pattern_to_world_implicit(pattern, to_world, dep, direction="out")
+        b_s = implicit_basis_vector(dep)
+        b_p = dr.cross(dep, b_s)
+        er, ei = e.x * b_s + e.y * b_p, e.z * b_s + e.w * b_p
+        # specular reflection at r: the tracer's slab TE/TM coefficients and sqrt(1 - S^2)
+        cos_i = dr.clip(-dr.dot(dep, plane_n), 0.0, 1.0)
+        eta_re, eta_im, thick, spec = (dr.gather(mi.Float, table, ids, ok) for table in tr.mat)
+        (te_r, te_i), (tm_r, tm_i) = _slab_reflection(dr, cos_i, eta_re, eta_im, thick, tr.wavelength)
+        e_s = dr.cross(dep, plane_n)
+        ls = dr.norm(e_s)
+        e_s = dr.select(ls > 1e-6, e_s / dr.maximum(ls, 1e-30), mi.coordinate_system(plane_n)[0])
+        e_pi, e_pr = dr.cross(e_s, dep), dr.cross(e_s, ki)
+        s_r, s_i = dr.dot(er, e_s), dr.dot(ei, e_s)
+        p_r, p_i = dr.dot(er, e_pi), dr.dot(ei, e_pi)
+        a_r, a_i = _cmul(te_r, te_i, s_r, s_i)
+        b_r, b_i = _cmul(tm_r, tm_i, p_r, p_i)
+        out_re = spec * (a_r * e_s + b_r * e_pr)
+        out_im = spec * (a_i * e_s + b_i * e_pr)
+        k_s = implicit_basis_vector(ki)
+        k_p = dr.cross(ki, k_s)
+        jones = mi.Vector4f(dr.dot(out_re, k_s), dr.dot(out_re, k_p), dr.dot(out_im, k_s), dr.dot(out_im, k_p))
+        return ok, jones, ki, s_prime, dep
+
+    def _trace_batch(self, w_index, u, v, n_w, sample_index, order: int, sink) -> None:
+        dr, mi = self.dr, self.mi
         from sionna.rt.constants import MIN_SEGMENT_LENGTH
         from sionna.rt.radio_map_solvers.radio_map import RadioMap
         from sionna.rt.radio_map_solvers.radio_map_solver import RadioMapSolver
         from sionna.rt.utils.jones import implicit_basis_vector
-        from sionna.rt.utils.ray_tracing import sample_keller_cone_with_measure, spawn_ray_to
+        from sionna.rt.utils.ray_tracing import sample_keller_cone_with_measure
 
         wedges = self._wedge_geometry(w_index)
-        tx = dr.zeros(mi.Point3f, len(w_index)) + mi.Point3f(*(float(x) for x in self.tx))
+        vec = lambda a, t=mi.Vector3f: t(*(mi.Float(a[:, j].astype(np.float32)) for j in range(3)))  # noqa: E731
+        src = vec(self._wedge_np["src"][w_index], mi.Point3f)
         q = wedges.o + mi.Float(u.astype(np.float32)) * wedges.length * wedges.e_hat
-        ki = dr.normalize(q - tx)
         free_edge = wedges.primn == wedges.prim0
         ne = dr.select(free_edge, mi.Vector3f(0), dr.normalize(wedges.n0 + wedges.nn))
         q_off = q + LEAK_OFFSET_M * ne
-        s_prime = dr.norm(q - tx)
-        ok = ~self.scene.ray_test(spawn_ray_to(tx, q)) & ~self.scene.ray_test(spawn_ray_to(tx, q_off))
+        ok, e_in, ki, s_prime, dep = self._incident(
+            q, q_off, src, vec(self._wedge_np["plane_n"][w_index]),
+            mi.Float(self._wedge_np["plane_off"][w_index].astype(np.float32)), order)
         ok &= s_prime > MIN_SEGMENT_LENGTH
         ko, measure = sample_keller_cone_with_measure(wedges.e_hat, wedges.n0, wedges.nn,
                                                       mi.Float(v.astype(np.float32)), ki, True)
@@ -202,18 +357,15 @@ class DiffractionSampler:
             return
         take = lambda x: dr.gather(type(x), x, idx)  # noqa: E731
         wq = dr.gather(type(wedges), wedges, idx)
-        qq, kki, kko, sp, sr, o = take(q), take(ki), take(ko), take(s_prime), take(s_ref), take(ray.o)
+        qq, kki, kko, sp, sr, o, dd = take(q), take(ki), take(ko), take(s_prime), take(s_ref), take(ray.o), take(dep)
         n = dr.width(idx)
-        pattern = self.radio.scene.tx_array.antenna_pattern.patterns[0]
-        to_world = mi.Matrix3f(*(float(self.rot[r, c]) for r in range(3) for c in range(3)))
-        e_in = antenna_pattern_to_world_implicit(pattern, to_world, kki, direction="out")
         e_out = RadioMapSolver._evaluate_radio_material_diffraction(
-            None, mi.ShapePtr(wq.shape), wq, qq, kki, kko, [e_in], sr, sp, dr.full(mi.Bool, True, n))[0]
+            None, mi.ShapePtr(wq.shape), wq, qq, kki, kko, [take(e_in)], sr, sp, dr.full(mi.Bool, True, n))[0]
         # Sionna's change of variables from (position on the edge, angle on the cone) to the area
         # of a plane normal to the ray at s_ref: with the field there, the ray's flux
         si = dr.zeros(mi.SurfaceInteraction3f, n)
         si.p, si.n = qq + sr * kko, mi.Normal3f(kko)
-        area = RadioMap._diffraction_integration_weight(None, wq, take(tx), qq, kko, si)
+        area = RadioMap._diffraction_integration_weight(None, wq, take(src), qq, kko, si)
         area *= wq.length * take(measure) / mi.Float(n_w.astype(np.float32)[idx.numpy()])
         # The tracer deposits |E|^2 (4 pi / num_rays) / |cos| per crossing: scale the field so that
         # its solid-angle factor becomes this ray's area per sample
@@ -222,16 +374,34 @@ class DiffractionSampler:
         e_p = dr.cross(kko, e_s)
         state = dict(o=o, d=kko, e_re=scale * (e_out.x * e_s + e_out.y * e_p),
                      e_im=scale * (e_out.z * e_s + e_out.w * e_p), length=sp,
-                     # departure is towards q whatever the arrival: rank-one "mirror" columns
+                     # departure is fixed whatever the arrival: rank-one "mirror" columns
                      # (dep_k ko), so that the deposit's normalised M d_c is that direction
-                     **{f"m{k}": kki[k] * kko for k in range(3)})
+                     **{f"m{k}": dd[k] * kko for k in range(3)})
         if self.tracer.sampled:
             # diffuse reflection or refraction on: the tracer's random numbers are keyed by a ray
             # index (not a lattice ray's: offset), and the delay restarts at q (``anchor``: the
             # path length there), so a deposit's is |q - tx| + |c - q| exactly
             state.update(idx=mi.UInt32((sample_index[idx.numpy()] + DIFFRACTED_RAY_KEY) % 2**32),
                          anchor=sp)
-        self.tracer.propagate(state, sink, self.reflections_after, from_transmitter=False)
+        self.tracer.propagate(state, sink, self.reflections_after - order, from_transmitter=False)
+
+
+def _unique_triangles(dr, mi, ids, prim, active, extra=None) -> np.ndarray:
+    """Distinct (shape id, primitive[, extra]) rows of the active lanes, ``[n, 2 or 3]`` int64."""
+    idx = dr.compress(active)
+    cols = [dr.gather(mi.UInt32, c, idx) for c in ((ids, prim) if extra is None else (ids, prim, extra))]
+    dr.eval(*cols)
+    if dr.width(idx) == 0:
+        return np.zeros((0, len(cols)), np.int64)
+    # hash-based (pandas) rather than np.unique's row sort: millions of hits, few distinct rows
+    rows = pd.DataFrame({k: c.numpy() for k, c in enumerate(cols)}).drop_duplicates()
+    return rows.to_numpy(np.int64)
+
+
+_KEYS = ("shape", "prim0", "primn", "local_edge", "o", "e_hat", "n0", "nn", "length", "src", "plane_n",
+         "plane_off", "order")
+_VEC = {"o", "e_hat", "n0", "nn", "src", "plane_n"}
+_DTYPES = {"shape": np.uint32, "prim0": np.uint32, "primn": np.uint32, "local_edge": np.uint32, "order": np.int64}
 
 
 def _lex_less(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -305,10 +305,11 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
 
             # the diffraction is one of max_depth interactions; specular ones may follow it
             wedges = DiffractionSampler(radio, tracer, tx_position_m, rot, grid, depth - 1 if depth else 0,
-                                        edge_diffraction)
+                                        edge_diffraction,
+                                        reflections_before=1 if specular_reflection and depth >= 2 else 0)
             wedges.find_wedges(int(num_rays), int(batch_rays))
             wedges.trace(int(num_rays if diffraction_samples is None else diffraction_samples),
-                         int(batch_rays), sink)
+                         4 * int(batch_rays), sink)
     m = acc.moments()
     frac = outdoor_fraction(radio, x_m, y_m, grid.heights, cell_size_m=cell_size_m)
     masked = frac < min_outdoor_fraction
