@@ -48,8 +48,9 @@ import numpy as np
 import pandas as pd
 
 from simart_pipeline.ckm.moments import CellMoments, layers_from_moments
+from simart_pipeline.ckm.outdoor import outdoor_fraction
 from simart_pipeline.ckm.shoot_bounce import (DIRECTION_QUANTUM, Q_BITS, Q_OFFSET, Grid, Tracer,
-                                              grid_from_centres, outdoor_fraction)
+                                              grid_from_centres)
 from simart_pipeline.link.beams import rotation_local_to_world
 from simart_pipeline.vocabulary import SPEED_OF_LIGHT_MPS
 
