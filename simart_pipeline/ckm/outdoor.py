@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from simart_pipeline.ckm.shoot_bounce import grid_from_centres
+from simart_pipeline.scene.meshes import SceneMeshes
 from simart_pipeline.scene.solids import Solids, inside_solids, mesh_solids
 
 OUTDOOR_SAMPLES_PER_AXIS = 4
@@ -39,6 +40,13 @@ def radio_triangles(radio) -> np.ndarray:
 def radio_solids(radio) -> Solids:
     """The solids of the radio scene's meshes (:func:`simart_pipeline.scene.solids.mesh_solids`)."""
     return mesh_solids(radio_triangles(radio))
+
+
+def mesh_solids_of(paired: SceneMeshes) -> Solids:
+    """The solids of a scene's radio mesh read from its paired meshes (the PLY files the radio
+    scene loads), without loading Sionna: what ``ckm_layers`` masks cell centres with."""
+    tris = [m.triangles for m in paired.radio.values() if len(m.faces)]
+    return mesh_solids(np.concatenate(tris) if tris else np.zeros((0, 3, 3)))
 
 
 def anything_above(radio, points: np.ndarray) -> np.ndarray:
