@@ -295,6 +295,7 @@ def run_scene(name: str, spec: dict, num_rays: int, compare_cells: int, loop_cel
               ray_counts=RAY_COUNTS) -> dict:
     import sionna.rt as rt
 
+    from simart_pipeline.ckm.outdoor import radio_solids
     from simart_pipeline.ckm.radiomap import radio_map_path_gain_db
     from simart_pipeline.radio.tracer import RadioScene
 
@@ -309,9 +310,11 @@ def run_scene(name: str, spec: dict, num_rays: int, compare_cells: int, loop_cel
     y = spec["centre"][1] - spec["size"][1] / 2 + (np.arange(ny) + 0.5) * CELL_M
     codebook = dft_codebook(radio.array_positions_m("tx"), radio.wavelength_m, 8, 8).weights
 
+    solids = radio_solids(radio)  # once per scene, as ckm_layers does once per tile
+
     def one_pass(n, rx_polarization="V"):
         return lambda: op.one_pass_moments(radio, tx, ori, x, y, [HEIGHT_M], n, MAX_DEPTH, codebook=codebook,
-                                           rx_polarization=rx_polarization)
+                                           rx_polarization=rx_polarization, solids=solids)
 
     m, first_s, fast_s = _warm(one_pass(num_rays), WARM_REPEATS)
     fast = m.layers()

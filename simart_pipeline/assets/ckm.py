@@ -26,6 +26,7 @@ def ckm_layers(context: dg.AssetExecutionContext, project: ProjectResource, ray_
     """Every CKM layer of one tile, for each set of radio materials, written into its chunk-aligned
     region of the scene's mosaic store (``ckm/<scene>/<materials>.zarr``)."""
     from simart_pipeline.ckm.layers import tile_grid, tile_layers
+    from simart_pipeline.ckm.outdoor import mesh_solids_of
 
     scene, tile = split_key(context.partition_key)
     cfg = project.config(scene)
@@ -34,7 +35,7 @@ def ckm_layers(context: dg.AssetExecutionContext, project: ProjectResource, ray_
         return versioned_result(context, project, "ckm_layers", {"in_scene_tiling": False, "cells_traced": 0})
     geom = geometry.from_dataset(osm_extract.load())
     meta = {"in_scene_tiling": True, "mode": cfg.ckm.mode, "cells_traced": 0}
-    grid = tile_grid(cfg, geom, tile)
+    grid = tile_grid(cfg, geom, tile, mesh_solids_of(paired_meshes))
     plan = project.version_plan(scene)
     force = context.run.tags.get(FORCE_TAG) == "true"
     for name, weathers in map_groups(cfg).items():

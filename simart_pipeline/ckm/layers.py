@@ -27,6 +27,7 @@ from simart_pipeline.ckm.grid import cell_centres, outside_region, tile_slices
 from simart_pipeline.config import SceneConfig
 from simart_pipeline.link.budget import power_db
 from simart_pipeline.scene.geometry import SourceGeometry, inside_buildings
+from simart_pipeline.scene.solids import Solids, inside_solids
 from simart_pipeline.vocabulary import SPEED_OF_LIGHT_MPS
 
 MASKED = "cell masked (inside a building or outside the region), or nothing reached it"
@@ -55,7 +56,12 @@ class TileGrid:
         return ~self.inside_building & ~self.outside_region[None]
 
 
-def tile_grid(cfg: SceneConfig, geom: SourceGeometry, tile: str) -> TileGrid:
+def tile_grid(cfg: SceneConfig, geom: SourceGeometry, tile: str, solids: Solids | None = None) -> TileGrid:
+    """The cells of ``tile``. A cell centre is inside a building when it lies inside one of
+    ``solids`` (the radio mesh's, :func:`simart_pipeline.ckm.outdoor.mesh_solids_of`: exact, the
+    fast mode's own indoor test; a centre on a wall is outdoors); without them, inside a
+    footprint's height band of ``geom`` (conservative where a roof or a part overhangs its
+    footprint's walls)."""
     ckm = cfg.ckm
     sl = tile_slices(ckm, tile)
     y_all, x_all = cell_centres(ckm)
@@ -64,8 +70,14 @@ def tile_grid(cfg: SceneConfig, geom: SourceGeometry, tile: str) -> TileGrid:
     y, x = y_all[rows], x_all[cols]
     heights = np.asarray(ckm.heights, np.float64)
     yy, xx = np.meshgrid(y, x, indexing="ij")
-    inside = np.stack([inside_buildings(geom, xx, yy, np.full_like(xx, h)) for h in heights]) \
-        if len(y) and len(x) else np.zeros((len(heights), len(y), len(x)), bool)
+    if not (len(y) and len(x)):
+        inside = np.zeros((len(heights), len(y), len(x)), bool)
+    elif solids is not None:
+        pts = np.column_stack([np.tile(xx.ravel(), len(heights)), np.tile(yy.ravel(), len(heights)),
+                               np.repeat(heights, xx.size)])
+        inside = inside_solids(solids, pts, walls_outside=True).reshape(len(heights), len(y), len(x))
+    else:
+        inside = np.stack([inside_buildings(geom, xx, yy, np.full_like(xx, h)) for h in heights])
     return TileGrid(tile, rows, cols, y, x, heights, inside, outside_region(ckm, x, y))
 
 
@@ -117,9 +129,11 @@ def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, t
     """One shoot-and-bounce pass per base station over the tile's planes (more where
     ``ckm.adaptive_max_rays`` asks): moments ``[B, H, y, x]`` and the rays each station's pass used."""
     from simart_pipeline.ckm.one_pass import adaptive_one_pass_moments
+    from simart_pipeline.ckm.outdoor import radio_solids
 
     per_bs = []
     rx = cfg.platforms[0].array
+    solids = radio_solids(radio)
     for b in cfg.base_stations:
         per_bs.append(adaptive_one_pass_moments(
             radio, np.asarray(b.position_m, np.float64), np.deg2rad(np.asarray(b.orientation_deg, np.float64)),
@@ -128,7 +142,7 @@ def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, t
             codebook=weights, tx_ant_positions_m=tx_ant_positions_m,
             min_hits_for_spread=cfg.ckm.min_hits_for_spread, min_hits_for_power=cfg.ckm.min_hits_for_power,
             cell_size_m=cfg.ckm.cell_size_m,
-            indoor=grid.inside_building | grid.outside_region[None],
+            indoor=grid.inside_building | grid.outside_region[None], solids=solids,
             # as the reference mode's receiver: its polarisation, not the whole field
             rx_polarization=rx.polarization if rx.pattern == "iso" else None,
             # the interaction types of the scene's ray tracing, as the reference mode's PathSolver

@@ -61,9 +61,11 @@ import numpy as np
 import pandas as pd
 
 from simart_pipeline.ckm.moments import CellMoments, layers_from_moments
+from simart_pipeline.ckm.outdoor import outdoor_fraction
 from simart_pipeline.ckm.shoot_bounce import (DIRECTION_QUANTUM, Q_BITS, Q_OFFSET, Grid, Tracer,
-                                              grid_from_centres, outdoor_fraction)
+                                              grid_from_centres)
 from simart_pipeline.link.beams import rotation_local_to_world
+from simart_pipeline.scene.solids import Solids
 from simart_pipeline.vocabulary import SPEED_OF_LIGHT_MPS
 
 __all__ = ["OnePassMoments", "adaptive_one_pass_moments", "beam_factors", "one_pass_moments", "outdoor_fraction",
@@ -234,7 +236,8 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                      min_outdoor_fraction: float = DEFAULT_MIN_OUTDOOR_FRACTION,
                      rx_polarization: str | None = None, los: bool = True, specular_reflection: bool = True,
                      refraction: bool = False, diffraction: bool = False, edge_diffraction: bool = False,
-                     diffuse_reflection: bool = False, diffraction_samples: int | None = None) -> OnePassMoments:
+                     diffuse_reflection: bool = False, diffraction_samples: int | None = None,
+                     solids: Solids | None = None) -> OnePassMoments:
     """Per-cell power moments of one transmitter over a grid, from one shoot-and-bounce pass.
 
     :param radio: :class:`simart_pipeline.radio.tracer.RadioScene` (mesh, materials of its
@@ -254,7 +257,8 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
     :param indoor: optional bool mask, broadcastable to ``[num_heights, ny, nx]``: cells to mask
     :param min_outdoor_fraction: cells with less of their area outside buildings
         (:func:`outdoor_fraction`) are masked; the others have their sums divided by that share
-        (power normalised by the outdoor area the rays can reach)
+        (power normalised by the outdoor area the rays can reach); ``solids``: the radio scene's
+        (:func:`simart_pipeline.ckm.outdoor.radio_solids`), if the caller has them already
     :param rx_polarization: None: isotropic receiver collecting the whole field ``|E|^2``
         (RadioMapSolver's); ``"V"`` / ``"H"``: an isotropic element of that polarisation
     :param los, specular_reflection, refraction, diffuse_reflection: interaction types as in
@@ -311,7 +315,7 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
             wedges.trace(int(num_rays if diffraction_samples is None else diffraction_samples),
                          4 * int(batch_rays), sink)
     m = acc.moments()
-    frac = outdoor_fraction(radio, x_m, y_m, grid.heights, cell_size_m=cell_size_m)
+    frac = outdoor_fraction(radio, x_m, y_m, grid.heights, cell_size_m=cell_size_m, solids=solids)
     masked = frac < min_outdoor_fraction
     if indoor is not None:
         try:

@@ -8,7 +8,7 @@ either reflects specularly with the ITU-R P.2040 slab TE/TM coefficients of the 
 material (specular reflection alone: the original path, deterministic) or, where diffuse
 reflection or refraction is on, draws one interaction per ray (:meth:`Tracer._interact`). It
 hands every crossing of a grid height plane to a sink as numpy arrays (one call per segment and
-height). :func:`outdoor_fraction` measures how much of each cell lies outside buildings.
+height). Which cells lie indoors is :mod:`simart_pipeline.ckm.outdoor`'s business.
 Everything that depends on the scene, the grid or the device enters the kernels as opaque
 variables, so compiled kernels are reused across grids, tiles and transmitters.
 
@@ -48,7 +48,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.constants import epsilon_0
 
-OUTDOOR_SAMPLES_PER_AXIS = 4
 # Departure directions are quantised for the beam gains on a grid of 2**-13 in direction cosines
 # (device frame): a phase error below pi * 2**-13 * sqrt(3) * (largest element offset in
 # wavelengths) per element, 1.2e-3 rad for an 8 x 8 half-wavelength array. 15 bits per component.
@@ -674,34 +673,3 @@ class Tracer:
                 st = self._reflect(st, t_hit, ids, prim, hit)
             if st is None:
                 break
-
-
-def outdoor_fraction(radio, x_m, y_m, heights_m, samples_per_axis: int = OUTDOOR_SAMPLES_PER_AXIS,
-                     cell_size_m: float | None = None) -> np.ndarray:
-    """Share of each cell's area outside buildings, ``[num_heights, ny, nx]``, from
-    ``samples_per_axis**2`` points per cell. A point is inside when a ray cast from it straight up
-    hits the radio mesh at all: it stands under a roof (or an overhang, counted as inside).
-
-    Not crossing parity: buildings sharing a wall and a building part standing on another one have
-    coincident faces, of which a ray steps over all but one, so parity read such points as outdoor
-    (255 cells of a 500 m x 500 m Munich grid at 5 m, measured when this changed). Whether anything lies above does not depend on how many faces
-    there are nor on their orientation (Sionna's bundled scenes have inward normals), and a
-    courtyard, open to the sky, stays outdoor. The radio mesh holds buildings and flat ground
-    layers only (scene/meshes.py), so nothing else stands above an outdoor receiver."""
-    import drjit as dr
-    import mitsuba as mi
-
-    g = grid_from_centres(x_m, y_m, heights_m, cell_size_m)
-    off = (np.arange(samples_per_axis) + 0.5) / samples_per_axis - 0.5
-    c = g.centres()
-    px = c[:, 0, None, None] + off[None, None, :] * g.dx + 0 * off[None, :, None]
-    py = c[:, 1, None, None] + off[None, :, None] * g.dy + 0 * off[None, None, :]
-    pz = np.broadcast_to(c[:, 2, None, None], px.shape)
-    pts = [np.ascontiguousarray(a, np.float32).ravel() for a in (px, py, pz)]
-    n = pts[0].size
-    up = dr.zeros(mi.Vector3f, n) + mi.Vector3f(0.0, 0.0, 1.0)
-    hit = radio.scene.mi_scene.ray_intersect_preliminary(mi.Ray3f(mi.Point3f(*pts), up), False).is_valid()
-    inside = np.asarray(hit.numpy(), bool).reshape(len(c), -1)
-    return (1.0 - inside.mean(axis=1)).reshape(g.shape)
-
-

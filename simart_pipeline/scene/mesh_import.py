@@ -29,7 +29,7 @@ import shapely
 import trimesh
 
 from simart_pipeline.config import MeshImportRules, check_mesh_labels
-from simart_pipeline.scene import simplify
+from simart_pipeline.scene import simplify, solids
 from simart_pipeline.scene.geometry import Feature, SourceGeometry
 from simart_pipeline.scene.meshes import SceneMeshes
 from simart_pipeline.vocabulary import SemanticClass
@@ -399,9 +399,10 @@ def source_geometry_from_imported(imp: ImportedMesh, origin: tuple[float, float,
     """:func:`source_geometry_from_mesh` of parts already read and labelled.
 
     :param join_parts: find connected components across parts (a building split into a wall and a
-        roof shape is one), take an open component whose open edges all lie at its lowest height
-        (walls and a roof without a floor) for a solid, and a closed one for a solid whichever way
-        its faces point
+        roof shape is one), take a component that is closed, or open only at its bottom (its open
+        edges on horizontal rings its faces rise from: walls and a roof without a floor, a tower
+        open on a roof; :func:`simart_pipeline.scene.solids.enclosing_parts`), for a solid whichever
+        way its faces point, and a flat or otherwise open one for a sheet
     """
     keep, _ = _radio_faces(imp)
     cls = imp.face_attr("semantic_class")
@@ -418,15 +419,11 @@ def source_geometry_from_imported(imp: ImportedMesh, origin: tuple[float, float,
         edges, count = simplify.edge_use_counts(local, label)
         open_comp = np.zeros(n, bool)
         open_comp[edges[count != 2, 0]] = True
-        if join_parts:  # open only where an open edge lies above the component's lowest height
-            z_of_local = np.empty(int(local.max()) + 1)
-            z_of_local[local.ravel()] = imp.vertices[f.ravel(), 2]
-            low = np.full(n, np.inf)
-            np.minimum.at(low, label, z_of_local[local].min(axis=1))
-            border = edges[count == 1]
-            top = z_of_local[border[:, 1:]].max(axis=1)
-            open_comp[:] = False
-            open_comp[border[top > low[border[:, 0]] + imp.rules.merge_tolerance_m, 0]] = True
+        if join_parts:  # a solid as the CKM's indoor mask sees one (scene/solids.py)
+            pos = np.zeros((int(local.max()) + 1, 3))
+            pos[local.ravel()] = imp.vertices[f.ravel()]
+            encloses, _ = solids.enclosing_parts(pos, local, label, n, imp.rules.merge_tolerance_m, with_caps=False)
+            open_comp = ~encloses
         for k in range(n):
             fk = np.flatnonzero(label == k)
             tri = imp.vertices[f[fk]]
