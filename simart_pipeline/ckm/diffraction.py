@@ -99,9 +99,9 @@ class DiffractionSampler:
             pi = self.scene.ray_intersect_preliminary(mi.Ray3f(o, d), False)
             hit = pi.is_valid()
             ids = dr.reinterpret_array(mi.UInt32, pi.shape)
-            direct.append(_unique_triangles(dr, mi, ids, pi.prim_index, hit))
+            face = dr.gather(mi.UInt32, tr.face_offset, ids, hit) + dr.select(hit, pi.prim_index, 0)
+            direct.append(_unique_faces(dr, mi, face, hit))
             if self.reflections_before:
-                face = dr.gather(mi.UInt32, tr.face_offset, ids, hit) + dr.select(hit, pi.prim_index, 0)
                 n = dr.gather(mi.Vector3f, tr.face_normals, face, hit)
                 n = dr.select(dr.dot(d, n) > 0, -n, n)  # towards the transmitter's side
                 p = o + dr.select(hit, pi.t, 0.0) * d
@@ -109,16 +109,17 @@ class DiffractionSampler:
                 o_r = p + (1.0 + dr.max(dr.abs(p))) * _SPAWN_EPSILON * n
                 pi2 = self.scene.ray_intersect_preliminary(mi.Ray3f(o_r, d_r), False, hit)
                 hit2 = hit & pi2.is_valid()
-                tri = _unique_triangles(dr, mi, dr.reinterpret_array(mi.UInt32, pi2.shape), pi2.prim_index, hit2,
-                                        extra=face)
-                reflected.append(tri)
-        cols = self._candidates(np.unique(np.concatenate(direct), axis=0), None)
+                ids2 = dr.reinterpret_array(mi.UInt32, pi2.shape)
+                face2 = dr.gather(mi.UInt32, tr.face_offset, ids2, hit2) + dr.select(hit2, pi2.prim_index, 0)
+                reflected.append(_unique_faces(dr, mi, (mi.UInt64(face) << 32) | mi.UInt64(face2), hit2))
+        cols = self._candidates(self._shape_prim(np.unique(np.concatenate(direct))), None)
         if self.reflections_before and reflected:
-            pairs = np.concatenate(reflected)
-            pairs[:, 2] = self._canonical_faces(pairs[:, 2])  # one source per reflecting plane
-            pairs = np.unique(pairs, axis=0)
+            pairs = np.unique(np.concatenate(reflected))
+            mirror = self._canonical_faces((pairs >> np.uint64(32)).astype(np.int64))  # one source per plane
+            pairs = np.unique(np.column_stack([self._shape_prim(pairs & np.uint64(0xFFFFFFFF)), mirror]), axis=0)
             cols = {k: np.concatenate([cols[k], v]) for k, v in self._candidates(pairs[:, :2], pairs[:, 2]).items()}
         self._wedge_np = cols
+        self._dr_all = None
         self.num_wedges = len(cols["length"])
         return self.num_wedges
 
@@ -177,6 +178,19 @@ class DiffractionSampler:
         _, first = np.unique(key, axis=0, return_index=True)  # sorted keys: a fixed order
         return {k: v[first] for k, v in out.items()}
 
+    def _shape_prim(self, faces: np.ndarray) -> np.ndarray:
+        """``[n, 2]`` (Mitsuba shape id, primitive) of global face indices (the tracer's table)."""
+        if not hasattr(self, "_offsets"):  # the tracer numbers faces shape by shape in this order
+            dr, mi = self.dr, self.mi
+            ids = np.array([int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0]) for sh in self.scene.shapes()],
+                           np.int64)
+            counts = np.array([sh.face_count() for sh in self.scene.shapes()], np.int64)
+            self._offsets = (np.cumsum(counts) - counts, ids)
+        start, ids = self._offsets
+        f = np.asarray(faces, np.int64)
+        k = np.searchsorted(start, f, side="right") - 1
+        return np.column_stack([ids[k], f - start[k]])
+
     def _canonical_faces(self, faces: np.ndarray) -> np.ndarray:
         """Each face replaced by the lowest-numbered face of its plane (normal within 1e-5, offset
         within 1e-5 m): coplanar triangles of one wall give one image source, bit for bit, so a
@@ -214,15 +228,23 @@ class DiffractionSampler:
         return self._first_vertex[face.astype(np.int64)]
 
     def _wedge_geometry(self, index: np.ndarray):
+        """:class:`WedgeGeometry`, source, reflecting plane of the (source, wedge) pairs
+        ``index``: Dr.Jit gathers from arrays built once (numpy fancy indexing of every field per
+        sample cost more than the samples' kernels)."""
         dr, mi = self.dr, self.mi
         from sionna.rt.utils.wedges import WedgeGeometry
 
-        c = {k: v[index] for k, v in self._wedge_np.items()}
-        vec = lambda a, t=mi.Vector3f: t(*(mi.Float(a[:, j].astype(np.float32)) for j in range(3)))  # noqa: E731
-        shape = mi.MeshPtr(dr.reinterpret_array(mi.ShapePtr, mi.UInt32(c["shape"])))
-        return WedgeGeometry(shape, mi.UInt32(c["prim0"]), mi.UInt32(c["primn"]), mi.UInt32(c["local_edge"]),
-                             vec(c["o"], mi.Point3f), vec(c["e_hat"]), mi.Float(c["length"].astype(np.float32)),
-                             vec(c["n0"], mi.Normal3f), vec(c["nn"], mi.Normal3f))
+        if getattr(self, "_dr_all", None) is None:
+            c = self._wedge_np
+            vec = lambda a, t=mi.Vector3f: t(*(mi.Float(a[:, j].astype(np.float32)) for j in range(3)))  # noqa: E731
+            shape = mi.MeshPtr(dr.reinterpret_array(mi.ShapePtr, mi.UInt32(c["shape"])))
+            wedges = WedgeGeometry(shape, mi.UInt32(c["prim0"]), mi.UInt32(c["primn"]), mi.UInt32(c["local_edge"]),
+                                   vec(c["o"], mi.Point3f), vec(c["e_hat"]), mi.Float(c["length"].astype(np.float32)),
+                                   vec(c["n0"], mi.Normal3f), vec(c["nn"], mi.Normal3f))
+            self._dr_all = (wedges, vec(c["src"], mi.Point3f), vec(c["plane_n"]),
+                            mi.Float(c["plane_off"].astype(np.float32)))
+        i = mi.UInt32(np.asarray(index, np.uint32))
+        return tuple(dr.gather(type(a), a, i) for a in self._dr_all)
 
     # -- step 2 ---------------------------------------------------------------------------------
     def allocation(self, num_samples: int) -> np.ndarray:
@@ -245,15 +267,14 @@ class DiffractionSampler:
         if self.num_wedges == 0 or num_samples <= 0:
             return
         counts = self.allocation(int(num_samples))
-        wedge = np.repeat(np.arange(self.num_wedges), counts)
-        k = np.arange(len(wedge)) - np.repeat(np.cumsum(counts) - counts, counts)  # index within wedge
-        for start in range(0, len(wedge), int(batch)):
-            sl = slice(start, start + int(batch))
-            w, kk = wedge[sl], k[sl].astype(np.float64)
+        ends = np.cumsum(counts)
+        for start in range(0, int(ends[-1]), int(batch)):
+            index = np.arange(start, min(start + int(batch), int(ends[-1])))
+            w = np.searchsorted(ends, index, side="right")  # the pair each sample belongs to
+            kk = (index - (ends[w] - counts[w])).astype(np.float64)  # its rank within the pair
             n_w = counts[w].astype(np.float64)
             u = (kk + 0.5) / n_w
             v = np.mod(kk / _GOLDEN_RATIO, 1.0)
-            index = np.arange(start, start + len(w))
             order = self._wedge_np["order"][w]
             for o in (0, 1):
                 sel = order == o
@@ -327,16 +348,12 @@ class DiffractionSampler:
         from sionna.rt.utils.jones import implicit_basis_vector
         from sionna.rt.utils.ray_tracing import sample_keller_cone_with_measure
 
-        wedges = self._wedge_geometry(w_index)
-        vec = lambda a, t=mi.Vector3f: t(*(mi.Float(a[:, j].astype(np.float32)) for j in range(3)))  # noqa: E731
-        src = vec(self._wedge_np["src"][w_index], mi.Point3f)
+        wedges, src, plane_n, plane_off = self._wedge_geometry(w_index)
         q = wedges.o + mi.Float(u.astype(np.float32)) * wedges.length * wedges.e_hat
         free_edge = wedges.primn == wedges.prim0
         ne = dr.select(free_edge, mi.Vector3f(0), dr.normalize(wedges.n0 + wedges.nn))
         q_off = q + LEAK_OFFSET_M * ne
-        ok, e_in, ki, s_prime, dep = self._incident(
-            q, q_off, src, vec(self._wedge_np["plane_n"][w_index]),
-            mi.Float(self._wedge_np["plane_off"][w_index].astype(np.float32)), order)
+        ok, e_in, ki, s_prime, dep = self._incident(q, q_off, src, plane_n, plane_off, order)
         ok &= s_prime > MIN_SEGMENT_LENGTH
         ko, measure = sample_keller_cone_with_measure(wedges.e_hat, wedges.n0, wedges.nn,
                                                       mi.Float(v.astype(np.float32)), ki, True)
@@ -386,16 +403,13 @@ class DiffractionSampler:
         self.tracer.propagate(state, sink, self.reflections_after - order, from_transmitter=False)
 
 
-def _unique_triangles(dr, mi, ids, prim, active, extra=None) -> np.ndarray:
-    """Distinct (shape id, primitive[, extra]) rows of the active lanes, ``[n, 2 or 3]`` int64."""
+def _unique_faces(dr, mi, key, active) -> np.ndarray:
+    """Distinct values of the UInt32/UInt64 ``key`` over the active lanes (hash-based: millions of
+    hits, few distinct keys)."""
     idx = dr.compress(active)
-    cols = [dr.gather(mi.UInt32, c, idx) for c in ((ids, prim) if extra is None else (ids, prim, extra))]
-    dr.eval(*cols)
-    if dr.width(idx) == 0:
-        return np.zeros((0, len(cols)), np.int64)
-    # hash-based (pandas) rather than np.unique's row sort: millions of hits, few distinct rows
-    rows = pd.DataFrame({k: c.numpy() for k, c in enumerate(cols)}).drop_duplicates()
-    return rows.to_numpy(np.int64)
+    k = dr.gather(type(key), key, idx)
+    dr.eval(k)
+    return np.zeros(0, np.uint64) if dr.width(idx) == 0 else pd.unique(k.numpy().astype(np.uint64))
 
 
 _KEYS = ("shape", "prim0", "primn", "local_edge", "o", "e_hat", "n0", "nn", "length", "src", "plane_n",
