@@ -510,7 +510,8 @@ def test_diffraction_agrees_with_pathsolver_in_the_shadow_of_a_block(tmp_path, g
     cell = 2.0
     x, y = _axes(16.0, 8, 16.0, 6, cell)
     m = op.one_pass_moments(radio, tx, np.zeros(3), x, y, [1.5], 2_000_000, depth, diffraction=True,
-                            specular_reflection=ground, rx_polarization="V", min_hits_for_power=1)
+                            specular_reflection=ground, rx_polarization="V", min_hits_for_power=1,
+                            diffraction_samples=2_000_000)
     off = (np.arange(3) - 1) * cell / 3
     X, Y = np.meshgrid(x, y)
     ox, oy = (a.ravel() for a in np.meshgrid(off, off))
@@ -542,7 +543,7 @@ def test_diffraction_with_a_metal_ground_obeys_image_theory(tmp_path):
     tx = np.array([0.0, 0.0, 10.0])
     x, y = _axes(16.0, 8, 16.0, 6, 2.0)
     n = 2_000_000
-    kw = dict(diffraction=True, rx_polarization=None, min_hits_for_power=1)
+    kw = dict(diffraction=True, rx_polarization=None, min_hits_for_power=1, diffraction_samples=n)
     a = op.one_pass_moments(with_ground, tx, np.zeros(3), x, y, [1.5], n, 2, **kw).power[0]
     b_up, b_down = (op.one_pass_moments(free, tx, np.zeros(3), x, y, [h], n, 1, specular_reflection=False,
                                         **kw).power[0] for h in (1.5, -1.5))

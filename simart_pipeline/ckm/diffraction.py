@@ -53,6 +53,12 @@ WEDGE_KEY_M = 1e-3      # end points closer than this are the same edge
 LEAK_OFFSET_M = 5e-2    # Sionna's offset of the visibility-test point off the wedge
 SPAWN_OFFSET_M = 1e-3   # diffracted rays start this far off the edge
 MAX_REFERENCE_DISTANCE_M = 1e4
+# Samples per lattice ray on the direct wedges, and the (image, wedge) pairs' share of those: at
+# 4e6 rays on Munich (2 m cells, min_hits_for_power 5) 1x, 2x and 4x direct samples give a value
+# in 91.6 %, 94.6 % and 99.4 % of the sampled outdoor cells where PathSolver finds a path; 4x
+# reflected samples instead of direct ones only 97.0 % (docs/ckm-one-pass.md).
+DIRECT_SAMPLES_PER_RAY = 4
+REFLECTED_SAMPLE_SHARE = 0.125
 DIFFRACTED_RAY_KEY = 0x9E3779B9  # diffracted rays' random-number keys: sample index plus this  # a diffracted ray meeting nothing: its field is taken this far out
 _GOLDEN_RATIO = (1.0 + 5.0**0.5) / 2.0
 _PLASTIC = 1.32471795724474602596  # R2 sequence constant: the wedge-picking sample of step 1
@@ -248,15 +254,17 @@ class DiffractionSampler:
 
     # -- step 2 ---------------------------------------------------------------------------------
     def allocation(self, num_samples: int) -> np.ndarray:
-        """Samples per (source, wedge): each source order (direct, one reflection before) gets
-        ``num_samples``, spread in proportion to length, largest remainders, at least one each."""
+        """Samples per (source, wedge): ``num_samples`` for the direct wedges and
+        :data:`REFLECTED_SAMPLE_SHARE` of that for the (image, wedge) pairs, each spread in
+        proportion to length, largest remainders, at least one each."""
         length = self._wedge_np["length"].astype(np.float64)
         n = np.zeros(len(length), np.int64)
         for order in np.unique(self._wedge_np["order"]):
             sel = np.flatnonzero(self._wedge_np["order"] == order)
-            share = num_samples * length[sel] / length[sel].sum()
+            total = int(num_samples if order == 0 else round(num_samples * REFLECTED_SAMPLE_SHARE))
+            share = total * length[sel] / length[sel].sum()
             k = np.floor(share).astype(np.int64)
-            left = int(num_samples - k.sum())
+            left = int(total - k.sum())
             if left > 0:
                 k[np.argsort(-(share - k), kind="stable")[:left]] += 1
             n[sel] = k

@@ -269,7 +269,8 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         the depth, so still deterministic and batch-independent): :mod:`.shoot_bounce`.
     :param diffraction, edge_diffraction: first-order wedge (and free-edge) diffraction,
         :mod:`simart_pipeline.ckm.diffraction`, with ``diffraction_samples`` points on the lit
-        wedges (default ``num_rays``)
+        wedges (default ``DIRECT_SAMPLES_PER_RAY * num_rays``; an eighth of that again on the
+        wedges lit through one reflection)
     :return: :class:`OnePassMoments` of grid shape ``[num_heights, ny, nx]``
     """
     from simart_pipeline import engine
@@ -305,14 +306,14 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         for start in range(0, int(num_rays), int(batch_rays)):
             tracer.trace(start, min(start + int(batch_rays), int(num_rays)), sink)
         if diffraction and int(max_depth) > 0:  # Sionna counts a diffraction as one interaction of max_depth
-            from simart_pipeline.ckm.diffraction import DiffractionSampler
+            from simart_pipeline.ckm.diffraction import DIRECT_SAMPLES_PER_RAY, DiffractionSampler
 
             # the diffraction is one of max_depth interactions; specular ones may follow it
             wedges = DiffractionSampler(radio, tracer, tx_position_m, rot, grid, depth - 1 if depth else 0,
                                         edge_diffraction,
                                         reflections_before=1 if specular_reflection and depth >= 2 else 0)
             wedges.find_wedges(int(num_rays), int(batch_rays))
-            wedges.trace(int(num_rays if diffraction_samples is None else diffraction_samples),
+            wedges.trace(int(DIRECT_SAMPLES_PER_RAY * num_rays if diffraction_samples is None else diffraction_samples),
                          4 * int(batch_rays), sink)
     m = acc.moments()
     frac = outdoor_fraction(radio, x_m, y_m, grid.heights, cell_size_m=cell_size_m, solids=solids)
