@@ -7,7 +7,8 @@ at 3.5 GHz, transmitter (-30, 5, 20) m, receiver (29, -25, 1.5) m, diffraction o
 deterministic PathSolver call (:meth:`simart_pipeline.radio.tracer.RadioScene.trace`). Prints every
 path at ``max_depth`` 2 and 3 with its interaction sequence, power and vertices: the
 (diffraction, reflection) paths keep their vertices and lose 7-8 dB at depth 3, the others keep
-their power (depths 4 and 5 give what 3 gives). Image theory (tests/test_one_pass.py) and the one-pass solver side with depth 2.
+their power (depths 4 and 5 give what 3 gives). Image theory (tests/test_one_pass.py) and the
+one-pass solver side with depth 2.
 docs/ckm-one-pass.md (Diffraction) says what this means for comparisons.
 """
 
