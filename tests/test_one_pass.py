@@ -526,6 +526,47 @@ def test_diffraction_agrees_with_pathsolver_in_the_shadow_of_a_block(tmp_path, g
     assert np.median(np.abs(err)) < 0.5 and np.percentile(np.abs(err), 95) < 2.0, err
 
 
+def test_diffracted_bundle_area_equals_sionnas_change_of_variables():
+    """The closed form s (s + s') sin^2(beta) / s' against Sionna's own integration weight
+    (forward-mode AD through the ray's intersection with a plane normal to it), for random
+    wedges, sources and cone directions."""
+    import drjit as dr
+    import mitsuba as mi
+    from sionna.rt.radio_map_solvers.radio_map import RadioMap
+    from sionna.rt.utils.ray_tracing import sample_keller_cone_with_measure
+    from sionna.rt.utils.wedges import WedgeGeometry
+
+    from simart_pipeline import engine
+    from simart_pipeline.ckm.diffraction import diffracted_bundle_area
+
+    engine.init()
+    rng = np.random.default_rng(3)
+    n = 2000
+    unit = lambda a: a / np.linalg.norm(a, axis=1, keepdims=True)  # noqa: E731
+    e_hat = unit(rng.normal(size=(n, 3)))
+    n0 = unit(np.cross(e_hat, rng.normal(size=(n, 3))))
+    nn = unit(np.cross(e_hat, rng.normal(size=(n, 3))))
+    o = rng.uniform(-20, 20, (n, 3))
+    length = rng.uniform(1, 30, n)
+    q = o + rng.uniform(0, 1, n)[:, None] * length[:, None] * e_hat
+    src = q + rng.uniform(5, 200, n)[:, None] * unit(rng.normal(size=(n, 3)))
+    v3 = lambda a, t=mi.Vector3f: t(*(mi.Float(a[:, k].astype(np.float32)) for k in range(3)))  # noqa: E731
+    w = WedgeGeometry(dr.zeros(mi.MeshPtr, n), dr.zeros(mi.UInt32, n), dr.zeros(mi.UInt32, n), dr.zeros(mi.UInt32, n),
+                      v3(o, mi.Point3f), v3(e_hat), mi.Float(length.astype(np.float32)), v3(n0, mi.Normal3f),
+                      v3(nn, mi.Normal3f))
+    qq, ss = v3(q, mi.Point3f), v3(src, mi.Point3f)
+    ki = dr.normalize(qq - ss)
+    ko, _ = sample_keller_cone_with_measure(w.e_hat, w.n0, w.nn, mi.Float(rng.uniform(0, 1, n).astype(np.float32)),
+                                            ki, True)
+    s = mi.Float(rng.uniform(1, 300, n).astype(np.float32))
+    si = dr.zeros(mi.SurfaceInteraction3f, n)
+    si.p, si.n = qq + s * ko, mi.Normal3f(ko)
+    sionna = RadioMap._diffraction_integration_weight(None, w, ss, qq, ko, si).numpy()
+    ours = diffracted_bundle_area(s, dr.norm(qq - ss), ki, w.e_hat).numpy()
+    np.testing.assert_allclose(ours, sionna, rtol=2e-3)
+    assert np.median(np.abs(ours / sionna - 1)) < 1e-5
+
+
 def test_diffraction_with_a_metal_ground_obeys_image_theory(tmp_path):
     """A block on a metal ground (|R| = 1 to 1e-4), depth 2: in the block's shadow every path is
     one diffraction, with or without one ground reflection before or after it. By image theory

@@ -17,8 +17,9 @@ Per transmitter, after Sionna RT 2.2 (``RadioMapSolver._shoot_and_bounce`` and
 3. **Flux of a sample.** Its field is Sionna's UTD evaluation of the wedge's radio material
    (``RadioMapSolver._evaluate_radio_material_diffraction``, spreading factor included) at
    ``s_ref``, where the diffracted ray first meets the scene or a grid plane; its weight is
-   Sionna's change of variables from (position on the edge, angle on the cone) to the area of a
-   plane normal to the ray at ``s_ref`` (``RadioMap._diffraction_integration_weight``), times edge
+   the change of variables from (position on the edge, angle on the cone) to the area of a
+   plane normal to the ray at ``s_ref`` (:func:`diffracted_bundle_area`, as Sionna's
+   ``RadioMap._diffraction_integration_weight``), times edge
    length and cone angle over the wedge's sample count. ``|E|^2`` falls as
    ``1 / (s s' (s + s'))`` and that area grows as ``s (s + s') / s'``: their product, the flux,
    is the same all along the ray (the transition function's dependence on ``s`` aside: hence
@@ -47,7 +48,7 @@ import pandas as pd
 
 from simart_pipeline.ckm.shoot_bounce import _SPAWN_EPSILON, Grid, _cmul, _slab_reflection, fibonacci_directions
 
-__all__ = ["DiffractionSampler", "WEDGE_KEY_M"]
+__all__ = ["DiffractionSampler", "WEDGE_KEY_M", "diffracted_bundle_area"]
 
 WEDGE_KEY_M = 1e-3      # end points closer than this are the same edge
 LEAK_OFFSET_M = 5e-2    # Sionna's offset of the visibility-test point off the wedge
@@ -59,6 +60,7 @@ MAX_REFERENCE_DISTANCE_M = 1e4  # a diffracted ray meeting nothing: its field is
 # reflected samples instead of direct ones only 97.0 % (docs/ckm-one-pass.md).
 DIRECT_SAMPLES_PER_RAY = 4
 REFLECTED_SAMPLE_SHARE = 0.125
+DEPARTURE_QUANTUM = 2.0**-7  # diffracted paths' departure directions (for beams and angles)
 DIFFRACTED_RAY_KEY = 0x9E3779B9  # diffracted rays' random-number keys: sample index plus this
 _GOLDEN_RATIO = (1.0 + 5.0**0.5) / 2.0
 
@@ -350,7 +352,6 @@ class DiffractionSampler:
     def _trace_batch(self, w_index, u, v, n_w, sample_index, order: int, sink) -> None:
         dr, mi = self.dr, self.mi
         from sionna.rt.constants import MIN_SEGMENT_LENGTH
-        from sionna.rt.radio_map_solvers.radio_map import RadioMap
         from sionna.rt.radio_map_solvers.radio_map_solver import RadioMapSolver
         from sionna.rt.utils.jones import implicit_basis_vector
         from sionna.rt.utils.ray_tracing import sample_keller_cone_with_measure
@@ -382,14 +383,15 @@ class DiffractionSampler:
         take = lambda x: dr.gather(type(x), x, idx)  # noqa: E731
         wq = dr.gather(type(wedges), wedges, idx)
         qq, kki, kko, sp, sr, o, dd = take(q), take(ki), take(ko), take(s_prime), take(s_ref), take(ray.o), take(dep)
+        # departure directions on a 2**-7 grid of direction cosines (< 0.45 deg): the deposits of
+        # neighbouring samples then share their beam factors (one evaluation per cell and direction,
+        # one-pass _Accumulator._beams), which otherwise cost 25x the tracing with 64 beams
+        dd = dr.normalize(dr.round(dd * (1.0 / DEPARTURE_QUANTUM)) * DEPARTURE_QUANTUM)
         n = dr.width(idx)
         e_out = RadioMapSolver._evaluate_radio_material_diffraction(
             None, mi.ShapePtr(wq.shape), wq, qq, kki, kko, [take(e_in)], sr, sp, dr.full(mi.Bool, True, n))[0]
-        # Sionna's change of variables from (position on the edge, angle on the cone) to the area
-        # of a plane normal to the ray at s_ref: with the field there, the ray's flux
-        si = dr.zeros(mi.SurfaceInteraction3f, n)
-        si.p, si.n = qq + sr * kko, mi.Normal3f(kko)
-        area = RadioMap._diffraction_integration_weight(None, wq, take(src), qq, kko, si)
+        # the flux of the ray: its field at s_ref times the area it stands for there
+        area = diffracted_bundle_area(sr, sp, kki, wq.e_hat)
         area *= wq.length * take(measure) / mi.Float(n_w.astype(np.float32)[idx.numpy()])
         # The tracer deposits |E|^2 (4 pi / num_rays) / |cos| per crossing: scale the field so that
         # its solid-angle factor becomes this ray's area per sample
@@ -408,6 +410,22 @@ class DiffractionSampler:
             state.update(idx=mi.UInt32((sample_index[idx.numpy()] + DIFFRACTED_RAY_KEY) % 2**32),
                          anchor=sp)
         self.tracer.propagate(state, sink, self.reflections_after - order, from_transmitter=False)
+
+
+def diffracted_bundle_area(s_m, s_prime_m, ki, e_hat):
+    """Area (m^2 per m of edge and rad of cone angle) that the rays diffracted around
+    ``(l, phi)`` cover on a plane normal to them at ``s_m`` from the edge; the source lies
+    ``s_prime_m`` before it, ``ki`` its unit incident direction, ``e_hat`` the unit edge.
+
+    ``d/dphi`` moves the point by ``s sin(beta)``, ``d/dl`` by ``sin(beta) (s + s') / s'`` across
+    it (the source at ``s'`` turns the Keller cone as ``l`` moves), so
+    ``dA = s (s + s') sin^2(beta) / s' dl dphi``. Sionna's
+    ``RadioMap._diffraction_integration_weight`` (forward-mode AD on any plane) gives the same for
+    that plane (tests/test_one_pass.py) at several times the cost."""
+    import drjit as dr
+
+    sin2_beta = dr.maximum(1.0 - dr.square(dr.dot(ki, e_hat)), 0.0)
+    return s_m * (s_m + s_prime_m) * sin2_beta / s_prime_m
 
 
 def _unique_faces(dr, mi, key, active) -> np.ndarray:

@@ -147,10 +147,13 @@ class _Accumulator:
         # per group, at the direction quantised to DIRECTION_QUANTUM in the device frame (the
         # key, made on the Dr.Jit side: the same for a ray whatever its batch).
         g_cell, g_dkey, pg = _group_sums(cell, dkey, p, len(self.m.power))
+        # many cells share a direction (diffracted paths: on DEPARTURE_QUANTUM's grid): evaluate
+        # each distinct direction once
+        keys, inverse = np.unique(g_dkey, return_inverse=True)
         mask = (1 << Q_BITS) - 1
-        u = (np.stack([(g_dkey >> (k * Q_BITS)) & mask for k in (2, 1, 0)], -1) - Q_OFFSET) * DIRECTION_QUANTUM
+        u = (np.stack([(keys >> (k * Q_BITS)) & mask for k in (2, 1, 0)], -1) - Q_OFFSET) * DIRECTION_QUANTUM
         u /= np.linalg.norm(u, axis=1, keepdims=True)
-        gains = beam_factors(self.codebook, self.ant, u, self.k)
+        gains = beam_factors(self.codebook, self.ant, u, self.k)[inverse]
         first = np.flatnonzero(np.r_[True, g_cell[1:] != g_cell[:-1]])  # groups come sorted by cell
         self.m.beam_power[g_cell[first]] += np.add.reduceat(pg[:, None] * gains, first, axis=0)
 
