@@ -37,6 +37,9 @@ Per scene and set:
   the centre and against the 3 x 3 points pooled (their paths together, each point weighted 1/9:
   the gain is their mean). The cell layers are judged against the 3 x 3 points (ToA at the centre,
   the layer's definition);
+- **the reference's convergence** (the sets of :data:`REFERENCE_CHECK_SETS`): PathSolver finds a
+  wedge only where its samples hit it, so the centres of the cells with the largest gain errors
+  are traced again at :data:`REFERENCE_CHECK_SAMPLES` samples (:func:`reference_check`);
 - **speed**: the one-pass time for the whole grid (warm: kernels compiled), one PathSolver call per
   cell (timed on random outdoor cells, at most :data:`LOOP_CELLS` calls or :data:`LOOP_BUDGET_S`
   seconds, and extrapolated to the grid's cells with outdoor area, which the reference mode would
@@ -139,6 +142,14 @@ SWEEP_SETS = {"los_specular": tuple(SCENES), "diffraction": ("street_canyon",)}
 # Sampled cells per set (quick, full). PathSolver with diffuse reflection finds thousands of paths
 # per receiver (0.3-0.5 s each, 2 cores): the "all" set's sample is the small one.
 COMPARE_CELLS = {"los_specular": (40, 600), "diffraction": (12, 200), "all": (12, 40)}
+# The reference's own convergence where diffraction is on: PathSolver finds a wedge only where its
+# samples hit it, and at 1e5 samples it misses first-order diffracted paths that 1e6 find (urban
+# scene: cells 30-50 dB below the one-pass, which 1e6 samples bring to it). The centres of the cells
+# with the largest gain errors are traced again at REFERENCE_CHECK_SAMPLES (not for "all": with
+# diffuse reflection 1e6 samples cost 20 s per receiver).
+REFERENCE_CHECK_SETS = ("diffraction",)
+REFERENCE_CHECK_CELLS = (3, 10)  # (quick, full)
+REFERENCE_CHECK_SAMPLES = 10**6
 LOOP_CELLS = (6, 30)          # single PathSolver calls timed per set, at most (quick, full) ...
 LOOP_BUDGET_S = (10.0, 20.0)  # ... or until this many seconds have passed (at least MIN_LOOP_CALLS)
 MIN_LOOP_CALLS = 3
@@ -457,6 +468,37 @@ def _pathsolver_reference(radio, tx, ori, centres, codebook) -> tuple[dict, dict
             layers_from_moments(_reference_moments(p_points, tau0, codebook, pool=9)), s_per_rx, p_points)
 
 
+def reference_check(radio, tx, ori, centres_xyz: np.ndarray, fast_at: dict, ref_centre: dict, codebook,
+                    cells: int, samples: int = REFERENCE_CHECK_SAMPLES) -> dict:
+    """The ``cells`` sampled cells whose centre gain differs most from the one-pass layer, traced
+    again at their centre with ``samples`` per source: |one-pass - PathSolver| p50 / p95 there
+    against the main reference and against this one, and how many of those reference gains moved
+    by more than 1 dB. ``centres_xyz`` [sampled cells, 3]; ``fast_at``, ``ref_centre``: layers."""
+    both = fast_at["has_path"] & ref_centre["has_path"]
+    err = np.where(both, np.abs(fast_at["path_gain_db"] - ref_centre["path_gain_db"]), -np.inf)
+    worst = np.sort(np.argsort(-err, kind="stable")[:min(cells, int(both.sum()))])
+    if worst.size == 0:
+        return {"samples_per_src": samples, "cells": 0}
+    config = radio.solver_config
+    radio.solver_config = config.model_copy(update={"samples_per_src": int(samples)})
+    try:
+        t = time.perf_counter()
+        paths = radio.trace(tx[None], ori[None], centres_xyz[worst])
+        s = time.perf_counter() - t
+    finally:
+        radio.solver_config = config
+    tau0 = np.linalg.norm(centres_xyz[worst] - tx, axis=-1) / SPEED_OF_LIGHT
+    again = layers_from_moments(_reference_moments(paths, tau0, codebook))
+    fast_g, before = fast_at["path_gain_db"][worst], ref_centre["path_gain_db"][worst]
+    after = np.where(again["has_path"], again["path_gain_db"], np.nan)
+    return {"samples_per_src": int(samples), "cells": int(worst.size), "s": round(s, 2),
+            "abs_err_db_main_reference": _percentiles(np.abs(fast_g - before)),
+            "abs_err_db_this_reference": _percentiles(np.abs(fast_g - after)),
+            "reference_moved_gt_1_db": int((~(np.abs(after - before) <= 1.0)).sum()),
+            "signed_err_db_main_reference": np.round(fast_g - before, 2).tolist(),
+            "signed_err_db_this_reference": np.round(fast_g - after, 2).tolist()}
+
+
 def _per_cell_loop_s(radio, tx, ori, cells_xyz: np.ndarray, budget_s: float = float("inf"),
                      min_calls: int = MIN_LOOP_CALLS) -> tuple[float, int]:
     """Mean s of one PathSolver call per cell (after a warm-up of the single-receiver shape), over
@@ -539,6 +581,8 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
     fast_at = _layers_at(m, pick)
     cov = coverage(fast_at, refs, paths)
     del paths
+    check = (reference_check(radio, tx, ori, cells_xyz[pick], fast_at, ref_centre, codebook, sizes["check_cells"])
+             if mechanisms in REFERENCE_CHECK_SETS else None)
     per_call_s, calls_timed = _per_cell_loop_s(radio, tx, ori, cells_xyz[order["loop"][:sizes["loop_cells"]]],
                                                sizes["loop_budget_s"])
 
@@ -568,6 +612,7 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
                        "cells_per_s_per_cell_loop": round(1 / per_call_s, 2),
                        "cells_per_s_batched": round(1 / s_per_rx, 2)},
         "coverage": cov,
+        "reference_check": check,
         "speedup_vs_per_cell_loop": round(per_call_s * n_outdoor / fast_s, 1),
         "speedup_vs_per_cell_loop_all_cells": round(per_call_s * n_cells / fast_s, 1),
         "speedup_vs_batched_pathsolver": round(s_per_rx * n_outdoor / fast_s, 1),
@@ -608,6 +653,7 @@ def run_scene(name: str, spec: dict, num_rays: int, sets, quick: bool, seed: int
         for s in sets:
             t0 = time.perf_counter()
             sizes = {"compare_cells": COMPARE_CELLS[s][q], "loop_cells": LOOP_CELLS[q], "loop_budget_s": LOOP_BUDGET_S[q],
+                     "check_cells": REFERENCE_CHECK_CELLS[q],
                      "repeats": WARM_REPEATS if s == "los_specular" else (0 if quick else 1)}
             out["sets"][s] = run_set(name, s, xml, spec, num_rays, order, sizes, ray_counts, sample)
             out["sets"][s]["wall_s"] = round(time.perf_counter() - t0, 1)
@@ -736,7 +782,7 @@ def report(results: dict) -> str:
     for name, st, r in _each_set(results):
         lines.append(_row(f"{name}, {st}, centre", r["errors_vs_centre"]))
         lines.append(_row(f"{name}, {st}, 3x3", r["errors_vs_3x3_points"]))
-    lines += _coverage_lines(results)
+    lines += _coverage_lines(results) + _reference_check_lines(results)
     lines += ["", "## Speed", "",
               "Times measured side by side in this run; the per-cell loop was timed on random outdoor cells "
               "(n calls) and extrapolated to every cell with outdoor area, as was the batched run (s per "
@@ -798,6 +844,28 @@ def _coverage_lines(results: dict) -> list[str]:
                      f"({_f(c['vs_centre']['covered_of_reached_pct'])}) | {c['missed']} ({c['missed_with_too_few_hits']}) | "
                      f"{c['covered_not_reached']} | {_pp(c['missed_pathsolver_gain_db'])} | {u(pi['reached'])} | "
                      f"{u(pi['missed'])} | {_shares(pi['missed'])} | {_shares(pi['reached'])} |")
+    return lines
+
+
+def _reference_check_lines(results: dict) -> list[str]:
+    rows = [(name, st, r["reference_check"]) for name, st, r in _each_set(results) if r.get("reference_check")]
+    if not rows:
+        return []
+    lines = ["", "## The reference's convergence", "",
+             "The sampled cells whose centre gain differs most from the one-pass layer, traced again at their "
+             "centre with more PathSolver samples: |one-pass - PathSolver| there against the main reference "
+             f"({SAMPLES_PER_SRC:.0e} samples) and against this one, and how many reference gains moved by more "
+             "than 1 dB (or appeared). Signed errors (one-pass - PathSolver, dB) in cell order.", "",
+             "| scene | set | cells | samples | s | error dB p50 / p95, main reference | with more samples | "
+             "moved > 1 dB | signed, main | signed, more samples |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for name, st, c in rows:
+        if not c.get("cells"):
+            lines.append(f"| {name} | {st} | 0 | {c['samples_per_src']:.0e} | | | | | | |")
+            continue
+        lines.append(f"| {name} | {st} | {c['cells']} | {c['samples_per_src']:.0e} | {c['s']} | "
+                     f"{_pp(c['abs_err_db_main_reference'])} | {_pp(c['abs_err_db_this_reference'])} | "
+                     f"{c['reference_moved_gt_1_db']} | {' '.join(f'{v:g}' for v in c['signed_err_db_main_reference'])} | "
+                     f"{' '.join(f'{v:g}' for v in c['signed_err_db_this_reference'])} |")
     return lines
 
 

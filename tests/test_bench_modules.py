@@ -282,6 +282,12 @@ def _set_result(mechanisms: str, seed: int = 0) -> dict:
                               "default_samples": rms, "at_one_pass_rays": rms,
                               "one_pass_over_radio_map_time": 1.5, "one_pass_v_over_radio_map_time": 1.5},
          "wall_s": 1.0}
+    if mechanisms in cs.REFERENCE_CHECK_SETS:
+        r["reference_check"] = {"samples_per_src": 10**6, "cells": 2, "s": 1.0,
+                                "abs_err_db_main_reference": {"p50": 7.0, "p95": 12.0, "n": 2},
+                                "abs_err_db_this_reference": {"p50": 0.2, "p95": 0.3, "n": 2},
+                                "reference_moved_gt_1_db": 1, "signed_err_db_main_reference": [13.1, 0.2],
+                                "signed_err_db_this_reference": [0.2, 0.2]}
     if mechanisms in cs.SWEEP_SETS:
         point = {"rays": 10**5, "warm_s": 0.1, "first_call_s": 0.2, "coverage_pct": 50.0, "covered_of_reached_pct": 90.0,
                  "vs_centre": cs._curve_point(r["errors_vs_centre"]), "vs_3x3": cs._curve_point(r["errors_vs_3x3_points"])}
@@ -311,6 +317,7 @@ def test_ckm_solver_targets_and_report_cover_every_mechanism_set(tmp_path):
     for m in cs.MECHANISM_SETS:
         assert f"| canyon | {m} |" in md and f"- canyon, {m}: " in md
     assert "not run: predicted 400 s" in md and "## Coverage" in md
+    assert "| canyon | diffraction | 2 | 1e+06 | 1.0 | 7 / 12 | 0.2 / 0.3 | 1 | 13.1 0.2 | 0.2 0.2 |" in md
     json.dumps(results)  # what main writes
     curves = {f"canyon {m}": r["rays_vs_error"] for m, r in sets.items() if "rays_vs_error" in r}
     assert cs.write_rays_vs_error_plot(curves, tmp_path / "p.png").stat().st_size > 0
