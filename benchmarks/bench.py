@@ -83,15 +83,21 @@ def _sum_ckm_generator(r):
 def _sum_ckm_solver(r):
     lines = []
     for name, sc in (r.get("scenes") or {}).items():
-        rm = sc.get("radio_map_solver", {})
-        agree = _get(rm, "at_one_pass_rays", "path_gain_agreement_with_one_pass", "abs_diff_db", default={})
-        lines += [f"{name}: one-pass {_get(sc, 'one_pass', 'warm_s')} s warm, **{sc.get('speedup_vs_per_cell_loop')}x** "
-                  f"one PathSolver call per cell; path gain p50 {_get(sc, 'errors_vs_3x3_points', 'path_gain_db', 'p50')} "
-                  "dB against PathSolver's 3 x 3 points",
-                  f"{name}: one-pass / RadioMapSolver time at the same rays **{rm.get('one_pass_over_radio_map_time')}x**, "
-                  f"path gain |difference| p50 / p95 {agree.get('p50')} / {agree.get('p95')} dB",
-                  f"{name}: targets " + ", ".join(f"{k} {'met' if v else 'NOT met' if v is False else 'n/a'}"
-                                                  for k, v in (sc.get("targets_met") or {}).items())]
+        for ms, st in (sc.get("sets") or {}).items():
+            rm = st.get("radio_map_solver", {})
+            agree = _get(rm, "at_one_pass_rays", "path_gain_agreement_with_one_pass", "abs_diff_db", default={})
+            e3 = st.get("errors_vs_3x3_points", {})
+            lines += [f"{name}, {ms}: coverage {_get(st, 'coverage', 'covered_of_reached_pct')} % of the sampled cells "
+                      f"PathSolver reaches; one-pass {_get(st, 'one_pass', 'warm_s')} s warm, "
+                      f"**{st.get('speedup_vs_per_cell_loop')}x** one PathSolver call per cell; path gain p50 / p95 "
+                      f"{_get(e3, 'path_gain_db', 'p50')} / {_get(e3, 'path_gain_db', 'p95')} dB against PathSolver's "
+                      f"3 x 3 points, best beam {e3.get('best_beam_agreement_pct')} % (top-3 "
+                      f"{e3.get('best_beam_top3_agreement_pct')} %)",
+                      f"{name}, {ms}: one-pass / RadioMapSolver time at the same rays "
+                      f"**{rm.get('one_pass_over_radio_map_time')}x**, path gain |difference| p50 / p95 "
+                      f"{agree.get('p50')} / {agree.get('p95')} dB",
+                      f"{name}, {ms}: targets " + ", ".join(f"{k} {'met' if v else 'NOT met' if v is False else 'n/a'}"
+                                                            for k, v in (st.get("targets_met") or {}).items())]
     return lines
 
 
@@ -213,9 +219,10 @@ BENCHMARKS: list[Bench] = [
     Bench("ckm_generator", "CKM generator against one PathSolver call per cell",
           lambda q, o: ["--out", str(o)] + (["--loop-cells", "15"] if q else []), timeout_s=(150, 900),
           summary=_sum_ckm_generator),
-    Bench("ckm_solver", "One-pass CKM solver against PathSolver (Sionna's bundled scenes)",
+    Bench("ckm_solver", "One-pass CKM solver against PathSolver and RadioMapSolver (Sionna's street canyon and "
+          "Munich, the project's urban OSM scene; three mechanism sets)",
           lambda q, o: ["--out", str(o)] + (["--quick", "--scenes", "street_canyon"] if q else []),
-          timeout_s=(240, 1500), summary=_sum_ckm_solver),
+          timeout_s=(480, 2700), summary=_sum_ckm_solver),
     Bench("actors", "Moving actors: cost and the skip rule's error",
           lambda q, o: ["--out", str(o / "results.json")] + (["--parked", "2", "--thresholds", "200", "1"] if q else []),
           timeout_s=(300, 900), summary=_sum_actors),

@@ -161,6 +161,168 @@ def test_sweep_skips_a_count_predicted_too_slow():
     assert runs == [10**5, 10**6]
     assert points[1]["echo"] == 10**6 and points[1]["first_call_s"] is None
     assert points[2]["rays"] == 10**7 and "skipped" in points[2]
+
+# --- ckm_solver: coverage, top-3, interaction sequences, targets and report on synthetic data ------
+
+def _layers(n_cells=4, beams=4, seed=0, has=None):
+    """Synthetic per-cell layers in :func:`benchmarks.ckm_solver._compare`'s form."""
+    rng = np.random.default_rng(seed)
+    has = np.ones(n_cells, bool) if has is None else np.asarray(has)
+    bg = rng.normal(-90, 5, (n_cells, beams))
+    out = {"has_path": has, "enough_hits": has, "count": np.where(has, 50, 0), "path_gain_db": rng.normal(-90, 5, n_cells),
+           "toa_s": rng.uniform(1e-7, 2e-7, n_cells), "rms_delay_spread_s": rng.uniform(0, 2e-8, n_cells),
+           "los": rng.random(n_cells) > 0.5, "beam_gain_db": bg, "best_beam": np.argmax(bg, 1)}
+    for k in ("asa_deg", "asd_deg", "zsa_deg", "zsd_deg"):
+        out[k] = rng.uniform(0, 20, n_cells)
+    return out
+
+
+def test_compare_counts_top3_where_the_reference_best_is_among_the_three_best():
+    from benchmarks.ckm_solver import _compare
+
+    fast, ref = _layers(), _layers(seed=1)
+    fast["beam_gain_db"] = np.array([[0.0, -1, -2, -3]] * 4)  # ranks 0 > 1 > 2 > 3
+    fast["best_beam"] = np.zeros(4, int)
+    ref["best_beam"] = np.array([0, 2, 3, 1])  # first, third, fourth, second of the fast ranking
+    e = _compare(fast, ref)
+    assert e["best_beam_agreement_pct"] == 25.0 and e["best_beam_top3_agreement_pct"] == 75.0
+    assert e["cells_with_paths_in_both"] == 4
+    fast["has_path"] = np.array([True, True, False, True])  # the cell with the fourth-ranked beam drops out
+    assert _compare(fast, ref)["best_beam_top3_agreement_pct"] == 100.0
+
+
+def test_sequence_names_read_the_bounces_in_path_order():
+    from benchmarks.ckm_solver import sequence_name
+
+    assert sequence_name(0) == "LoS"
+    assert sequence_name(0x1) == "R" and sequence_name(0x81) == "R-D" and sequence_name(0x18) == "D-R"
+    assert sequence_name(0x244) == "T-T-S"
+
+
+def test_interaction_shares_known_answer():
+    from benchmarks.ckm_solver import interaction_shares
+
+    # two cells of two receivers each, two path slots, depth 2: [rx, depth, path]
+    inter = np.array([[[0, 8], [0, 0]],    # cell 0: LoS, D
+                      [[1, 0], [8, 0]],    # cell 0: R-D, invalid
+                      [[8, 0], [1, 0]],    # cell 1: D-R, invalid
+                      [[0, 0], [0, 0]]], np.uint8)  # cell 1: nothing
+    power = np.array([[2.0, 1.0], [1.0, 5.0], [4.0, 9.0], [0.0, 0.0]])
+    valid = np.array([[True, True], [True, False], [True, False], [False, False]])
+    r = interaction_shares(inter, power, valid, pool=2, cells=np.array([True, True]))
+    # cell 0: LoS 2/4, D 1/4, R-D 1/4 (untraced); cell 1: D-R all of it; means over the two cells
+    assert r["cells"] == 2
+    assert r["sequences"] == {"D-R": {"share_pct": 50.0, "paths": 1}, "LoS": {"share_pct": 25.0, "paths": 1},
+                              "D": {"share_pct": 12.5, "paths": 1}, "R-D": {"share_pct": 12.5, "paths": 1}}
+    assert r["untraced_pct"]["mean"] == 12.5 and r["untraced_pct"]["n"] == 2
+    none = interaction_shares(inter, power, valid, pool=2, cells=np.array([False, False]))
+    assert none["cells"] == 0 and none["sequences"] == {}
+
+
+def test_coverage_counts_missed_and_extra_cells_and_names_what_pathsolver_found():
+    from types import SimpleNamespace
+
+    from benchmarks.ckm_solver import coverage
+
+    fast = _layers(has=[True, False, True, False])
+    fast["count"] = np.array([50, 2, 50, 0])  # the missed cell 1 had a few ray hits
+    ref3 = _layers(seed=1, has=[True, True, False, False])
+    centre = _layers(seed=2, has=[True, False, False, False])
+    # 4 cells x 9 points, one path slot each, depth 1; cell 1's points see a diffracted path
+    inter = np.zeros((36, 1, 1, 1), np.uint8)
+    inter[9:18] = 8
+    valid = np.zeros((36, 1, 1), bool)
+    valid[:18] = True
+    paths = SimpleNamespace(a=np.ones((36, 1, 1, 1, 1), complex), interaction=inter, valid=valid)
+    c = coverage(fast, {"vs_3x3": ref3, "vs_centre": centre}, paths)
+    assert (c["sampled_cells"], c["reached_by_pathsolver"], c["missed"], c["missed_with_too_few_hits"],
+            c["covered_not_reached"]) == (4, 2, 1, 1, 1)
+    assert c["covered_of_reached_pct"] == 50.0 and c["vs_centre"]["covered_of_reached_pct"] == 100.0
+    assert c["pathsolver_interactions"]["missed"]["sequences"] == {"D": {"share_pct": 100.0, "paths": 9}}
+    assert c["missed_pathsolver_gain_db"]["n"] == 1
+
+
+def test_per_cell_loop_stops_after_its_budget_but_times_at_least_the_minimum():
+    from benchmarks import ckm_solver
+
+    class Radio:
+        calls = 0
+
+        def trace(self, tx, ori, rx):
+            Radio.calls += 1
+
+    cells = np.zeros((10, 3))
+    _, n = ckm_solver._per_cell_loop_s(Radio(), np.zeros(3), np.zeros(3), cells, budget_s=0.0, min_calls=3)
+    assert n == 3 and Radio.calls == 4  # one warm-up call
+    _, n = ckm_solver._per_cell_loop_s(Radio(), np.zeros(3), np.zeros(3), cells)
+    assert n == 10
+
+
+def _set_result(mechanisms: str, seed: int = 0) -> dict:
+    """One mechanism set's results as run_set writes them, from synthetic layers."""
+    from types import SimpleNamespace
+
+    from benchmarks import ckm_solver as cs
+
+    fast, ref = _layers(8, seed=seed), _layers(8, seed=seed + 1)
+    paths = SimpleNamespace(a=np.ones((72, 1, 1, 1, 1), complex), interaction=np.zeros((72, 1, 1, 1), np.uint8),
+                            valid=np.ones((72, 1, 1), bool))
+    agree = cs.map_agreement(np.array([-90.0, -80.0]), np.array([-90.05, -80.0]))
+    rms = {"samples_per_tx": 10**7, "first_call_s": None, "warm_s": 2.0, "cells_per_s": 100.0, "cells_covered": 2,
+           "path_gain_agreement_with_one_pass": agree}
+    r = {"mechanisms": {}, "label": cs.SET_LABELS[mechanisms], "cells_covered": 8,
+         "one_pass": {"rays": 10**7, "warm_s": 3.0, "first_call_s": None, "cells_per_s": 10.0},
+         "pathsolver": {"per_cell_call_s": 0.5, "per_cell_calls_timed": 3, "batched_s_per_cell": 0.1},
+         "coverage": cs.coverage(fast, {"vs_3x3": ref, "vs_centre": ref}, paths),
+         "speedup_vs_per_cell_loop": 150.0, "speedup_vs_per_cell_loop_all_cells": 200.0,
+         "speedup_vs_batched_pathsolver": 30.0,
+         "errors_vs_centre": cs._compare(fast, ref), "errors_vs_3x3_points": cs._compare(fast, ref),
+         "radio_map_solver": {"one_pass_unpolarised": {"rays": 10**7, "first_call_s": 1.0, "warm_s": 3.0,
+                                                       "cells_per_s": 10.0, "cells_covered": 2},
+                              "default_samples": rms, "at_one_pass_rays": rms,
+                              "one_pass_over_radio_map_time": 1.5, "one_pass_v_over_radio_map_time": 1.5},
+         "wall_s": 1.0}
+    if mechanisms in cs.REFERENCE_CHECK_SETS:
+        r["reference_check"] = {"samples_per_src": 10**6, "cells": 2, "s": 1.0,
+                                "abs_err_db_main_reference": {"p50": 7.0, "p95": 12.0, "n": 2},
+                                "abs_err_db_this_reference": {"p50": 0.2, "p95": 0.3, "n": 2},
+                                "reference_moved_gt_1_db": 1, "signed_err_db_main_reference": [13.1, 0.2],
+                                "signed_err_db_this_reference": [0.2, 0.2]}
+    if mechanisms in cs.SWEEP_SETS:
+        point = {"rays": 10**5, "warm_s": 0.1, "first_call_s": 0.2, "coverage_pct": 50.0, "covered_of_reached_pct": 90.0,
+                 "vs_centre": cs._curve_point(r["errors_vs_centre"]), "vs_3x3": cs._curve_point(r["errors_vs_3x3_points"])}
+        r["rays_vs_error"] = {"one_pass": [point, {"rays": 10**8, "skipped": "predicted 400 s per call > 300 s"}],
+                              "radio_map_solver": [point]}
+    r["targets_met"] = cs.targets(r, mechanisms)
+    return r
+
+
+def test_ckm_solver_targets_and_report_cover_every_mechanism_set(tmp_path):
+    from benchmarks import ckm_solver as cs
+
+    sets = {m: _set_result(m, i) for i, m in enumerate(cs.MECHANISM_SETS)}
+    assert set(sets["los_specular"]["targets_met"]) == {
+        "speedup_vs_per_cell_loop_ge_100", "path_gain_p50_vs_3x3_le_0.5_db", "toa_p50_vs_centre_le_1_ns",
+        "best_beam_agreement_ge_95_pct", "one_pass_within_2x_of_radio_map_solver",
+        "path_gain_p50_vs_radio_map_solver_le_0.1_db"}
+    t = sets["all"]["targets_met"]
+    assert {"coverage_of_pathsolver_cells_ge_99_pct", "path_gain_p95_vs_3x3_le_3_db", "rms_delay_spread_p50_vs_3x3_le_5_ns",
+            "angular_spreads_p50_vs_3x3_le_5_deg", "best_beam_top3_agreement_ge_99_pct"} <= set(t)
+    assert t["speedup_vs_per_cell_loop_ge_100"] is True and t["one_pass_within_2x_of_radio_map_solver"] is True
+    assert t["angular_spreads_p50_vs_3x3_le_5_deg"] is False  # random spreads of 0 .. 20 deg
+    results = {"settings": {"machine": "m", "variant": "v", "quick": False, "total_s": 1.0, "rays": 10**7,
+                            "min_hits_for_spread": 10, "compare_cells": {m: 8 for m in sets}},
+               "scenes": {"canyon": {"grid": {"cells": 100, "cells_with_outdoor_area": 80}, "sets": sets}}}
+    md = cs.report(results)
+    for m in cs.MECHANISM_SETS:
+        assert f"| canyon | {m} |" in md and f"- canyon, {m}: " in md
+    assert "not run: predicted 400 s" in md and "## Coverage" in md
+    assert "| canyon | diffraction | 2 | 1e+06 | 1.0 | 7 / 12 | 0.2 / 0.3 | 1 | 13.1 0.2 | 0.2 0.2 |" in md
+    json.dumps(results)  # what main writes
+    curves = {f"canyon {m}": r["rays_vs_error"] for m, r in sets.items() if "rays_vs_error" in r}
+    assert cs.write_rays_vs_error_plot(curves, tmp_path / "p.png").stat().st_size > 0
+
+
 def _paths(power, tau_ns, inter):
     """Synthetic links for the strongest-path agreement: ``power`` [links, path] (0: no path),
     delays in ns, interaction sequences [links, path, depth]."""

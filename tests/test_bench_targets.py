@@ -62,6 +62,40 @@ def test_quick_run_does_not_judge_targets_named_for_the_full_scene():
     assert row["met"] is None and row["figure"] == 0.5 and "quick" in row["why"]
 
 
+def _ckm_set(coverage=99.5, gain=(0.2, 2.0), top3=99.5, ratio=1.5):
+    """A ckm_solver mechanism set's results, only the figures the targets read."""
+    e = {"path_gain_db": {"p50": gain[0], "p95": gain[1]}, "rms_delay_spread_ns": {"p50": 1.0},
+         "best_beam_agreement_pct": 96.0, "best_beam_top3_agreement_pct": top3,
+         **{k: {"p50": 1.0} for k in ("asa_deg", "asd_deg", "zsa_deg")}, "zsd_deg": {"p50": None}}
+    return {"coverage": {"covered_of_reached_pct": coverage}, "errors_vs_3x3_points": e,
+            "errors_vs_centre": {"toa_ns": {"p50": 0.1}}, "speedup_vs_per_cell_loop": 150.0,
+            "radio_map_solver": {"one_pass_over_radio_map_time": ratio, "at_one_pass_rays": {
+                "path_gain_agreement_with_one_pass": {"abs_diff_db": {"p50": 0.05, "p95": 0.5}}}}}
+
+
+def test_ckm_solver_targets_read_each_scene_and_mechanism_set():
+    from benchmarks import ckm_solver as cs
+
+    sets = {"los_specular": _ckm_set(ratio=3.0), **{m: _ckm_set() for m in cs.TARGET_SETS}}
+    sets[cs.TARGET_SETS[0]] = _ckm_set(coverage=80.0, top3=99.0)
+    res = _bench("full", ckm_solver={"scenes": {"street_canyon": {"sets": sets}, "munich": {"sets": {}}}})
+    rows = targets.evaluate(res)
+    ms = cs.TARGET_SETS[0]
+    cov = _row(rows, 17, f"street_canyon, mechanisms `{ms}`, against PathSolver with the same: a value in")
+    assert cov["met"] is False and cov["figure"] == 80.0
+    assert _row(rows, 17, f"street_canyon, mechanisms `{ms}`, against PathSolver with the same: PathSolver's best beam")["met"]
+    assert _row(rows, 17, "street_canyon, mechanisms `all`, against PathSolver with the same: angular")["figure"] == 1.0
+    assert _row(rows, 17, "street_canyon, LoS + specular: time within 2x")["met"] is False
+    assert _row(rows, 8, "street_canyon: path gain p50")["met"] is True
+    # a scene without the set, a scene not run: not judged, with why
+    assert "not in this run" in _row(rows, 17, f"munich, mechanisms `{ms}`, against PathSolver with the same: a value in")["why"]
+    assert _row(rows, 17, f"urban, mechanisms `{ms}`, against PathSolver with the same: ToA")["met"] is None
+    assert not [r for r in rows if r["issue"] == 17 and r["why"].startswith("not measured")]
+    quick = targets.evaluate(_bench("quick", ckm_solver={"scenes": {"street_canyon": {"sets": sets}}}))
+    row = _row(quick, 17, f"street_canyon, mechanisms `{ms}`, against PathSolver with the same: a value in")
+    assert row["met"] is None and row["figure"] == 80.0 and "quick" in row["why"]
+
+
 def test_report_carries_the_targets_table():
     res = _bench("full", ckm_generator={"speedup_vs_per_cell_loop": 12.0})
     res.update(command="simart bench --out X", started_utc="2026-11-25T00:00:00+00:00",
