@@ -46,7 +46,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from simart_pipeline.ckm.shoot_bounce import _SPAWN_EPSILON, Grid, _cmul, _slab_reflection, fibonacci_directions
+from simart_pipeline.ckm.shoot_bounce import _SPAWN_EPSILON, Grid, fibonacci_directions, reflection_terms
 
 __all__ = ["DiffractionSampler", "WEDGE_KEY_M", "diffracted_bundle_area"]
 
@@ -331,19 +331,10 @@ class DiffractionSampler:
         b_p = dr.cross(dep, b_s)
         er, ei = e.x * b_s + e.y * b_p, e.z * b_s + e.w * b_p
         # specular reflection at r: the tracer's slab TE/TM coefficients and sqrt(1 - S^2)
-        cos_i = dr.clip(-dr.dot(dep, plane_n), 0.0, 1.0)
         eta_re, eta_im, thick, spec = (dr.gather(mi.Float, table, ids, ok) for table in tr.mat)
-        (te_r, te_i), (tm_r, tm_i) = _slab_reflection(dr, cos_i, eta_re, eta_im, thick, tr.wavelength)
-        e_s = dr.cross(dep, plane_n)
-        ls = dr.norm(e_s)
-        e_s = dr.select(ls > 1e-6, e_s / dr.maximum(ls, 1e-30), mi.coordinate_system(plane_n)[0])
-        e_pi, e_pr = dr.cross(e_s, dep), dr.cross(e_s, ki)
-        s_r, s_i = dr.dot(er, e_s), dr.dot(ei, e_s)
-        p_r, p_i = dr.dot(er, e_pi), dr.dot(ei, e_pi)
-        a_r, a_i = _cmul(te_r, te_i, s_r, s_i)
-        b_r, b_i = _cmul(tm_r, tm_i, p_r, p_i)
-        out_re = spec * (a_r * e_s + b_r * e_pr)
-        out_im = spec * (a_i * e_s + b_i * e_pr)
+        r = reflection_terms(dr, mi, dep, plane_n, er, ei, eta_re, eta_im, thick, tr.wavelength)
+        out_re = spec * (r["a_r"] * r["e_s"] + r["b_r"] * r["e_pr"])  # e_pr: along ki, the mirror of dep
+        out_im = spec * (r["a_i"] * r["e_s"] + r["b_i"] * r["e_pr"])
         k_s = implicit_basis_vector(ki)
         k_p = dr.cross(ki, k_s)
         jones = mi.Vector4f(dr.dot(out_re, k_s), dr.dot(out_re, k_p), dr.dot(out_im, k_s), dr.dot(out_im, k_p))

@@ -335,6 +335,28 @@ def _theta_phi_hat(dr, mi, k):
     return mi.Vector3f(k.z * cphi, k.z * sphi, -rho), mi.Vector3f(-sphi, cphi, 0.0)
 
 
+def reflection_terms(dr, mi, d, n, e_re, e_im, eta_re, eta_im, thick, wavelength):
+    """A field ``(e_re, e_im)`` travelling along ``d`` onto a face of unit normal ``n`` (facing
+    the incoming side): the incidence basis (``e_s`` normal to the plane of incidence, ``e_pi``
+    / ``e_pr`` in it for the incident / reflected wave), the reflected direction, ``cos_i``, the
+    field's TE / TM components ``(s_r, s_i, p_r, p_i)`` and those components times the ITU-R
+    P.2040 slab coefficients ``(a_r, a_i, b_r, b_i)``: the reflected field is
+    ``a e_s + b e_pr``."""
+    cos_i = dr.clip(-dr.dot(d, n), 0.0, 1.0)
+    e_s = dr.cross(d, n)
+    ls = dr.norm(e_s)
+    e_s = dr.select(ls > 1e-6, e_s / dr.maximum(ls, 1e-30), mi.coordinate_system(n)[0])
+    d_r = d + 2.0 * cos_i * n
+    e_pi, e_pr = dr.cross(e_s, d), dr.cross(e_s, d_r)
+    s_r, s_i = dr.dot(e_re, e_s), dr.dot(e_im, e_s)
+    p_r, p_i = dr.dot(e_re, e_pi), dr.dot(e_im, e_pi)
+    (te_r, te_i), (tm_r, tm_i) = _slab_reflection(dr, cos_i, eta_re, eta_im, thick, wavelength)
+    a_r, a_i = _cmul(te_r, te_i, s_r, s_i)
+    b_r, b_i = _cmul(tm_r, tm_i, p_r, p_i)
+    return dict(cos_i=cos_i, e_s=e_s, e_pi=e_pi, e_pr=e_pr, d_r=d_r, s_r=s_r, s_i=s_i, p_r=p_r, p_i=p_i,
+                a_r=a_r, a_i=a_i, b_r=b_r, b_i=b_i)
+
+
 class Tracer:
     """Dr.Jit side: launch, intersect, deposit, reflect; hands deposits to numpy per segment."""
 
@@ -476,19 +498,10 @@ class Tracer:
         face = dr.gather(mi.UInt32, self.face_offset, ids, keep) + dr.select(keep, prim, 0)
         n = dr.gather(mi.Vector3f, self.face_normals, face, keep)
         n = dr.select(dr.dot(d, n) > 0, -n, n)
-        cos_i = dr.clip(-dr.dot(d, n), 0.0, 1.0)
         eta_re, eta_im, thick, spec = (dr.gather(mi.Float, table, ids, keep) for table in self.mat)
-        (te_r, te_i), (tm_r, tm_i) = _slab_reflection(dr, cos_i, eta_re, eta_im, thick, self.wavelength)
-        e_s = dr.cross(d, n)
-        ls = dr.norm(e_s)
-        e_s = dr.select(ls > 1e-6, e_s / dr.maximum(ls, 1e-30), mi.coordinate_system(n)[0])
-        d_r = d + 2.0 * cos_i * n
-        e_pi, e_pr = dr.cross(e_s, d), dr.cross(e_s, d_r)
-        er, ei = st["e_re"], st["e_im"]
-        s_r, s_i = dr.dot(er, e_s), dr.dot(ei, e_s)
-        p_r, p_i = dr.dot(er, e_pi), dr.dot(ei, e_pi)
-        a_r, a_i = _cmul(te_r, te_i, s_r, s_i)
-        b_r, b_i = _cmul(tm_r, tm_i, p_r, p_i)
+        r = reflection_terms(dr, mi, d, n, st["e_re"], st["e_im"], eta_re, eta_im, thick, self.wavelength)
+        e_s, e_pr, d_r = r["e_s"], r["e_pr"], r["d_r"]
+        a_r, a_i, b_r, b_i = r["a_r"], r["a_i"], r["b_r"], r["b_i"]
         p = st["o"] + t * d
         # leave the face on the side the ray came from, like Mitsuba's spawn_ray offset
         offset = (1.0 + dr.max(dr.abs(p))) * _SPAWN_EPSILON
@@ -557,20 +570,13 @@ class Tracer:
         face = dr.gather(mi.UInt32, self.face_offset, ids, keep) + dr.select(keep, prim, 0)
         n = dr.gather(mi.Vector3f, self.face_normals, face, keep)
         n = dr.select(dr.dot(d, n) > 0, -n, n)  # faces the side the ray comes from
-        cos_i = dr.clip(-dr.dot(d, n), 0.0, 1.0)
         eta_re, eta_im, thick, _ = (dr.gather(mi.Float, table, ids, keep) for table in self.mat)
         s_coef, kx, pat = (dr.gather(type(table), table, ids, keep) for table in self.scat)
-        e_s = dr.cross(d, n)
-        ls = dr.norm(e_s)
-        e_s = dr.select(ls > 1e-6, e_s / dr.maximum(ls, 1e-30), mi.coordinate_system(n)[0])
-        d_r = d + 2.0 * cos_i * n
-        e_pi, e_pr = dr.cross(e_s, d), dr.cross(e_s, d_r)
         er, ei = st["e_re"], st["e_im"]
-        s_r, s_i = dr.dot(er, e_s), dr.dot(ei, e_s)
-        p_r, p_i = dr.dot(er, e_pi), dr.dot(ei, e_pi)
-        (te_r, te_i), (tm_r, tm_i) = _slab_reflection(dr, cos_i, eta_re, eta_im, thick, self.wavelength)
-        a_r, a_i = _cmul(te_r, te_i, s_r, s_i)
-        b_r, b_i = _cmul(tm_r, tm_i, p_r, p_i)
+        r = reflection_terms(dr, mi, d, n, er, ei, eta_re, eta_im, thick, self.wavelength)
+        cos_i, e_s, e_pi, e_pr, d_r = r["cos_i"], r["e_s"], r["e_pi"], r["e_pr"], r["d_r"]
+        s_r, s_i, p_r, p_i = r["s_r"], r["s_i"], r["p_r"], r["p_i"]
+        a_r, a_i, b_r, b_i = r["a_r"], r["a_i"], r["b_r"], r["b_i"]
         e_refl = a_r * a_r + a_i * a_i + b_r * b_r + b_i * b_i  # |R E|^2
         s2 = s_coef * s_coef
         zero = dr.zeros(mi.Float, dr.width(cos_i))
