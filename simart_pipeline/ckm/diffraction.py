@@ -61,6 +61,8 @@ MAX_REFERENCE_DISTANCE_M = 1e4  # a diffracted ray meeting nothing: its field is
 DIRECT_SAMPLES_PER_RAY = 4
 REFLECTED_SAMPLE_SHARE = 0.125
 DEPARTURE_QUANTUM = 2.0**-7  # diffracted paths' departure directions (for beams and angles)
+SAMPLES_PER_BATCH_RAY = 4  # diffraction samples traced at once per lattice ray of a batch: a
+#                            sample's state is smaller than a ray's, and fewer launches cost less
 DIFFRACTED_RAY_KEY = 0x9E3779B9  # diffracted rays' random-number keys: sample index plus this
 _GOLDEN_RATIO = (1.0 + 5.0**0.5) / 2.0
 
@@ -86,8 +88,13 @@ class DiffractionSampler:
         self.reflections_after = int(reflections_after)
         self.reflections_before = int(reflections_before)
         self.edge_diffraction = bool(edge_diffraction)
-        self.num_wedges = 0
         self._wedge_np: dict[str, np.ndarray] = {}
+        self._dr_all = None  # _wedge_np as Dr.Jit arrays, built on first use
+
+    @property
+    def num_wedges(self) -> int:
+        """(source, wedge) pairs found by :meth:`find_wedges`."""
+        return len(self._wedge_np.get("length", ()))
 
     # -- step 1 ---------------------------------------------------------------------------------
     def find_wedges(self, num_rays: int, batch_rays: int) -> int:
@@ -105,29 +112,27 @@ class DiffractionSampler:
             o = dr.zeros(mi.Point3f, stop - start) + tx
             pi = self.scene.ray_intersect_preliminary(mi.Ray3f(o, d), False)
             hit = pi.is_valid()
-            ids = dr.reinterpret_array(mi.UInt32, pi.shape)
-            face = dr.gather(mi.UInt32, tr.face_offset, ids, hit) + dr.select(hit, pi.prim_index, 0)
+            face, n = tr.face_at(dr.reinterpret_array(mi.UInt32, pi.shape), pi.prim_index, hit)
             direct.append(_unique_faces(dr, mi, face, hit))
             if self.reflections_before:
-                n = dr.gather(mi.Vector3f, tr.face_normals, face, hit)
                 n = dr.select(dr.dot(d, n) > 0, -n, n)  # towards the transmitter's side
                 p = o + dr.select(hit, pi.t, 0.0) * d
                 d_r = d - 2.0 * dr.dot(d, n) * n
                 o_r = p + (1.0 + dr.max(dr.abs(p))) * _SPAWN_EPSILON * n
                 pi2 = self.scene.ray_intersect_preliminary(mi.Ray3f(o_r, d_r), False, hit)
                 hit2 = hit & pi2.is_valid()
-                ids2 = dr.reinterpret_array(mi.UInt32, pi2.shape)
-                face2 = dr.gather(mi.UInt32, tr.face_offset, ids2, hit2) + dr.select(hit2, pi2.prim_index, 0)
+                face2, _ = tr.face_at(dr.reinterpret_array(mi.UInt32, pi2.shape), pi2.prim_index, hit2)
                 reflected.append(_unique_faces(dr, mi, (mi.UInt64(face) << 32) | mi.UInt64(face2), hit2))
-        cols = self._candidates(self._shape_prim(np.unique(np.concatenate(direct))), None)
+        faces = tr.faces
+        cols = self._candidates(faces.shape_and_primitive(np.unique(np.concatenate(direct))), None)
         if self.reflections_before and reflected:
             pairs = np.unique(np.concatenate(reflected))
             mirror = self._canonical_faces((pairs >> np.uint64(32)).astype(np.int64))  # one source per plane
-            pairs = np.unique(np.column_stack([self._shape_prim(pairs & np.uint64(0xFFFFFFFF)), mirror]), axis=0)
+            pairs = np.unique(np.column_stack([faces.shape_and_primitive(pairs & np.uint64(0xFFFFFFFF)), mirror]),
+                              axis=0)
             cols = {k: np.concatenate([cols[k], v]) for k, v in self._candidates(pairs[:, :2], pairs[:, 2]).items()}
         self._wedge_np = cols
         self._dr_all = None
-        self.num_wedges = len(cols["length"])
         return self.num_wedges
 
     def _candidates(self, triangles: np.ndarray, reflector_face: np.ndarray | None) -> dict[str, np.ndarray]:
@@ -140,16 +145,12 @@ class DiffractionSampler:
 
         if len(triangles) == 0:
             return {k: np.zeros((0,) + ((3,) if k in _VEC else ()), _DTYPES.get(k, np.float64)) for k in _KEYS}
-        normals = self.tracer_normals()
         if reflector_face is None:
             src = np.broadcast_to(self.tx, (len(triangles), 3)).astype(np.float64)
             plane_n, plane_off = np.zeros((len(triangles), 3)), np.zeros(len(triangles))
             order = np.zeros(len(triangles), np.int64)
         else:
-            plane_n = normals[reflector_face.astype(np.int64)]
-            plane_off = np.einsum("ij,ij->i", plane_n, self._face_point(reflector_face))
-            side = plane_n @ self.tx - plane_off
-            plane_n, plane_off = plane_n * np.sign(side)[:, None], plane_off * np.sign(side)  # towards the tx
+            plane_n, plane_off = self._planes(reflector_face)
             src = self.tx - 2.0 * (plane_n @ self.tx - plane_off)[:, None] * plane_n
             order = np.ones(len(triangles), np.int64)
         rep = lambda a: np.repeat(a, 3, axis=0)  # noqa: E731 three edges per triangle
@@ -185,18 +186,15 @@ class DiffractionSampler:
         _, first = np.unique(key, axis=0, return_index=True)  # sorted keys: a fixed order
         return {k: v[first] for k, v in out.items()}
 
-    def _shape_prim(self, faces: np.ndarray) -> np.ndarray:
-        """``[n, 2]`` (Mitsuba shape id, primitive) of global face indices (the tracer's table)."""
-        if not hasattr(self, "_offsets"):  # the tracer numbers faces shape by shape in this order
-            dr, mi = self.dr, self.mi
-            ids = np.array([int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0]) for sh in self.scene.shapes()],
-                           np.int64)
-            counts = np.array([sh.face_count() for sh in self.scene.shapes()], np.int64)
-            self._offsets = (np.cumsum(counts) - counts, ids)
-        start, ids = self._offsets
+    def _planes(self, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Planes of global faces: unit normal ``[n, 3]`` turned towards the transmitter and offset
+        ``[n]`` m (``n . x = offset`` on the plane)."""
+        table = self.tracer.faces
         f = np.asarray(faces, np.int64)
-        k = np.searchsorted(start, f, side="right") - 1
-        return np.column_stack([ids[k], f - start[k]])
+        n, point = table.normals[f], table.first_vertex[f]
+        off = np.einsum("ij,ij->i", n, point)
+        sign = np.where(n @ self.tx - off < 0, -1.0, 1.0)
+        return n * sign[:, None], off * sign
 
     def _canonical_faces(self, faces: np.ndarray) -> np.ndarray:
         """Each face replaced by the lowest-numbered face of its plane (normal within 1e-5, offset
@@ -207,32 +205,13 @@ class DiffractionSampler:
         from scipy.spatial import cKDTree
 
         uniq, inverse = np.unique(faces, return_inverse=True)
-        n = self.tracer_normals()[uniq]
-        n = n * np.where(n @ self.tx - np.einsum("ij,ij->i", n, self._face_point(uniq)) < 0, -1.0, 1.0)[:, None]
-        off = np.einsum("ij,ij->i", n, self._face_point(uniq))
+        n, off = self._planes(uniq)
         pairs = cKDTree(np.column_stack([n, off])).query_pairs(1e-5, output_type="ndarray")
         graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(uniq), len(uniq)))
         _, label = connected_components(graph, directed=False)
         lowest = np.full(label.max() + 1, np.iinfo(np.int64).max)
         np.minimum.at(lowest, label, uniq)
         return lowest[label][inverse]
-
-    def tracer_normals(self) -> np.ndarray:
-        if not hasattr(self, "_normals"):
-            t = self.tracer.face_normals
-            self._normals = np.stack([t.x.numpy(), t.y.numpy(), t.z.numpy()], -1).astype(np.float64)
-        return self._normals
-
-    def _face_point(self, face: np.ndarray) -> np.ndarray:
-        """A vertex of each global face (for the plane offset)."""
-        if not hasattr(self, "_first_vertex"):
-            pts = []
-            for shape in self.scene.shapes():
-                v = shape.vertex_positions_buffer().numpy().reshape(-1, 3).astype(np.float64)
-                f = shape.faces_buffer().numpy().reshape(-1, 3).astype(np.int64)
-                pts.append(v[f[:, 0]])
-            self._first_vertex = np.concatenate(pts)
-        return self._first_vertex[face.astype(np.int64)]
 
     def _wedge_geometry(self, index: np.ndarray):
         """:class:`WedgeGeometry`, source, reflecting plane of the (source, wedge) pairs
@@ -241,7 +220,7 @@ class DiffractionSampler:
         dr, mi = self.dr, self.mi
         from sionna.rt.utils.wedges import WedgeGeometry
 
-        if getattr(self, "_dr_all", None) is None:
+        if self._dr_all is None:
             c = self._wedge_np
             vec = lambda a, t=mi.Vector3f: t(*(mi.Float(a[:, j].astype(np.float32)) for j in range(3)))  # noqa: E731
             shape = mi.MeshPtr(dr.reinterpret_array(mi.ShapePtr, mi.UInt32(c["shape"])))
@@ -296,7 +275,6 @@ class DiffractionSampler:
         distance ``s'``, the departure direction at the transmitter)."""
         dr, mi = self.dr, self.mi
         from sionna.rt.antenna_pattern import antenna_pattern_to_world_implicit
-        from sionna.rt.utils.jones import implicit_basis_vector
         from sionna.rt.utils.ray_tracing import spawn_ray_to
 
         tr = self.tracer
@@ -320,31 +298,24 @@ class DiffractionSampler:
         pi = self.scene.ray_intersect_preliminary(mi.Ray3f(r + probe * plane_n, -plane_n), False, ok)
         ok &= pi.is_valid() & (dr.abs(pi.t - probe) < 1e-3)
         ids = dr.reinterpret_array(mi.UInt32, pi.shape)
-        face = dr.gather(mi.UInt32, tr.face_offset, ids, ok) + dr.select(ok, pi.prim_index, 0)
-        ok &= dr.abs(dr.dot(dr.gather(mi.Vector3f, tr.face_normals, face, ok), plane_n)) > 1.0 - 1e-4
+        _, n_hit = tr.face_at(ids, pi.prim_index, ok)
+        ok &= dr.abs(dr.dot(n_hit, plane_n)) > 1.0 - 1e-4
         r_off = r + 1e-3 * plane_n
         ok &= ~self.scene.ray_test(spawn_ray_to(tx, r_off), ok)
         ok &= ~self.scene.ray_test(spawn_ray_to(r_off, q), ok) & ~self.scene.ray_test(spawn_ray_to(r_off, q_off), ok)
         dep = dr.normalize(r - tx)
-        e = antenna_pattern_to_world_implicit(pattern, to_world, dep, direction="out")
-        b_s = implicit_basis_vector(dep)
-        b_p = dr.cross(dep, b_s)
-        er, ei = e.x * b_s + e.y * b_p, e.z * b_s + e.w * b_p
+        er, ei = jones_to_world(antenna_pattern_to_world_implicit(pattern, to_world, dep, direction="out"), dep)
         # specular reflection at r: the tracer's slab TE/TM coefficients and sqrt(1 - S^2)
         eta_re, eta_im, thick, spec = (dr.gather(mi.Float, table, ids, ok) for table in tr.mat)
         r = reflection_terms(dr, mi, dep, plane_n, er, ei, eta_re, eta_im, thick, tr.wavelength)
         out_re = spec * (r["a_r"] * r["e_s"] + r["b_r"] * r["e_pr"])  # e_pr: along ki, the mirror of dep
         out_im = spec * (r["a_i"] * r["e_s"] + r["b_i"] * r["e_pr"])
-        k_s = implicit_basis_vector(ki)
-        k_p = dr.cross(ki, k_s)
-        jones = mi.Vector4f(dr.dot(out_re, k_s), dr.dot(out_re, k_p), dr.dot(out_im, k_s), dr.dot(out_im, k_p))
-        return ok, jones, ki, s_prime, dep
+        return ok, world_to_jones(out_re, out_im, ki), ki, s_prime, dep
 
     def _trace_batch(self, w_index, u, v, n_w, sample_index, order: int, sink) -> None:
         dr, mi = self.dr, self.mi
         from sionna.rt.constants import MIN_SEGMENT_LENGTH
         from sionna.rt.radio_map_solvers.radio_map_solver import RadioMapSolver
-        from sionna.rt.utils.jones import implicit_basis_vector
         from sionna.rt.utils.ray_tracing import sample_keller_cone_with_measure
 
         wedges, src, plane_n, plane_off = self._wedge_geometry(w_index)
@@ -387,10 +358,8 @@ class DiffractionSampler:
         # The tracer deposits |E|^2 (4 pi / num_rays) / |cos| per crossing: scale the field so that
         # its solid-angle factor becomes this ray's area per sample
         scale = dr.sqrt(dr.maximum(area, 0.0) * (self.tracer.num_rays / (4.0 * np.pi)))
-        e_s = implicit_basis_vector(kko)  # Sionna's implicit Jones basis: (e_s, k x e_s)
-        e_p = dr.cross(kko, e_s)
-        state = dict(o=o, d=kko, e_re=scale * (e_out.x * e_s + e_out.y * e_p),
-                     e_im=scale * (e_out.z * e_s + e_out.w * e_p), length=sp,
+        e_re, e_im = jones_to_world(e_out, kko)
+        state = dict(o=o, d=kko, e_re=scale * e_re, e_im=scale * e_im, length=sp,
                      # departure is fixed whatever the arrival: rank-one "mirror" columns
                      # (dep_k ko), so that the deposit's normalised M d_c is that direction
                      **{f"m{k}": dd[k] * kko for k in range(3)})
@@ -401,6 +370,32 @@ class DiffractionSampler:
             state.update(idx=mi.UInt32((sample_index[idx.numpy()] + DIFFRACTED_RAY_KEY) % 2**32),
                          anchor=sp)
         self.tracer.propagate(state, sink, self.reflections_after - order, from_transmitter=False)
+
+
+def _implicit_basis(k):
+    """Sionna's implicit Jones basis of a wave along unit ``k``: ``e_s = theta-hat(k)``
+    (``implicit_basis_vector``, with its fallback near the poles) and ``e_p = k x e_s``."""
+    import drjit as dr
+    from sionna.rt.utils.jones import implicit_basis_vector
+
+    e_s = implicit_basis_vector(k)
+    return e_s, dr.cross(k, e_s)
+
+
+def jones_to_world(jones, k):
+    """Sionna's real 4-vector Jones field ``(Re S, Re P, Im S, Im P)`` of a wave along unit ``k``
+    as world-frame (real, imaginary) 3-vectors."""
+    e_s, e_p = _implicit_basis(k)
+    return jones.x * e_s + jones.y * e_p, jones.z * e_s + jones.w * e_p
+
+
+def world_to_jones(e_re, e_im, k):
+    """The inverse of :func:`jones_to_world` for a field transverse to ``k``."""
+    import drjit as dr
+    import mitsuba as mi
+
+    e_s, e_p = _implicit_basis(k)
+    return mi.Vector4f(dr.dot(e_re, e_s), dr.dot(e_re, e_p), dr.dot(e_im, e_s), dr.dot(e_im, e_p))
 
 
 def diffracted_bundle_area(s_m, s_prime_m, ki, e_hat):

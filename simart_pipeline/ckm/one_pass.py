@@ -309,7 +309,8 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         for start in range(0, int(num_rays), int(batch_rays)):
             tracer.trace(start, min(start + int(batch_rays), int(num_rays)), sink)
         if diffraction and int(max_depth) > 0:  # Sionna counts a diffraction as one interaction of max_depth
-            from simart_pipeline.ckm.diffraction import DIRECT_SAMPLES_PER_RAY, DiffractionSampler
+            from simart_pipeline.ckm.diffraction import (DIRECT_SAMPLES_PER_RAY, SAMPLES_PER_BATCH_RAY,
+                                                          DiffractionSampler)
 
             # the diffraction is one of max_depth interactions; specular ones may follow it
             wedges = DiffractionSampler(radio, tracer, tx_position_m, rot, grid, depth - 1 if depth else 0,
@@ -317,7 +318,7 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                                         reflections_before=1 if specular_reflection and depth >= 2 else 0)
             wedges.find_wedges(int(num_rays), int(batch_rays))
             wedges.trace(int(DIRECT_SAMPLES_PER_RAY * num_rays if diffraction_samples is None else diffraction_samples),
-                         4 * int(batch_rays), sink)
+                         SAMPLES_PER_BATCH_RAY * int(batch_rays), sink)
     m = acc.moments()
     frac = outdoor_fraction(radio, x_m, y_m, grid.heights, cell_size_m=cell_size_m, solids=solids)
     masked = frac < min_outdoor_fraction

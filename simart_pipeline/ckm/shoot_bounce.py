@@ -222,13 +222,37 @@ def _scattering_tables(radio) -> tuple[np.ndarray, np.ndarray, np.ndarray, list]
     return s_tab, kx_tab, pat_tab, patterns
 
 
-def _face_normal_tables(mi_scene, source) -> tuple[np.ndarray, np.ndarray]:
-    """Unit geometric normals of every triangle of every mesh ``[total_faces, 3]`` (Mitsuba's
-    ``normalize(cross(p1 - p0, p2 - p0))``) and, per Mitsuba shape id, the index of its first face."""
+@dataclass(frozen=True)
+class FaceTable:
+    """Every triangle of the radio scene, numbered shape by shape in ``mi_scene.shapes()`` order
+    (the global face index): unit geometric normals ``[total_faces, 3]`` (Mitsuba's
+    ``normalize(cross(p1 - p0, p2 - p0))``), the first vertex of each ``[total_faces, 3]`` m, and
+    per shape its Mitsuba id and first global face (``shape_ids``, ``shape_first_face``)."""
+
+    normals: np.ndarray
+    first_vertex: np.ndarray
+    shape_ids: np.ndarray
+    shape_first_face: np.ndarray
+
+    def offsets_by_shape_id(self) -> np.ndarray:
+        """First global face per Mitsuba shape id (0 for ids that are no shape)."""
+        offsets = np.zeros(int(self.shape_ids.max(initial=0)) + 1, np.int64)
+        offsets[self.shape_ids] = self.shape_first_face
+        return offsets
+
+    def shape_and_primitive(self, faces) -> np.ndarray:
+        """``[n, 2]`` (Mitsuba shape id, primitive) of global face indices."""
+        f = np.asarray(faces, np.int64)
+        k = np.searchsorted(self.shape_first_face, f, side="right") - 1
+        return np.column_stack([self.shape_ids[k], f - self.shape_first_face[k]])
+
+
+def face_table(mi_scene, source) -> FaceTable:
+    """:class:`FaceTable` of a Mitsuba scene whose shapes are all triangle meshes."""
     import drjit as dr
     import mitsuba as mi
 
-    normals, first = [], {}
+    normals, first_vertex, ids, first = [], [], [], []
     total = 0
     for shape in mi_scene.shapes():
         if not shape.is_mesh():
@@ -238,13 +262,15 @@ def _face_normal_tables(mi_scene, source) -> tuple[np.ndarray, np.ndarray]:
         f = shape.faces_buffer().numpy().reshape(-1, 3).astype(np.int64)
         nrm = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
         nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
-        first[int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape))[0])] = total
+        ids.append(int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape))[0]))
+        first.append(total)
         normals.append(nrm)
+        first_vertex.append(v[f[:, 0]])
         total += len(f)
-    offsets = np.zeros(max(first, default=0) + 1, np.int64)
-    for k, v in first.items():
-        offsets[k] = v
-    return (np.concatenate(normals) if normals else np.zeros((1, 3))), offsets
+    if not normals:
+        return FaceTable(np.zeros((1, 3)), np.zeros((1, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64))
+    return FaceTable(np.concatenate(normals), np.concatenate(first_vertex), np.array(ids, np.int64),
+                     np.array(first, np.int64))
 
 
 def _complex_sqrt(dr, re, im):
@@ -392,9 +418,9 @@ class Tracer:
         self.with_beams = with_beams
         self.wavelength = opaque(radio.wavelength_m)
         eta_re, eta_im, thick, spec = _material_tables(radio)
-        normals, offsets = _face_normal_tables(self.scene, radio.scene_xml)
-        self.face_normals = mi.Vector3f(*(normals[:, k].astype(np.float32) for k in range(3)))
-        self.face_offset = mi.UInt32(offsets.astype(np.uint32))
+        self.faces = face_table(self.scene, radio.scene_xml)
+        self.face_normals = mi.Vector3f(*(self.faces.normals[:, k].astype(np.float32) for k in range(3)))
+        self.face_offset = mi.UInt32(self.faces.offsets_by_shape_id().astype(np.uint32))
         self.mat = tuple(mi.Float(np.asarray(a, np.float32)) for a in (eta_re, eta_im, thick, spec))
         self.specular, self.diffuse, self.refraction = bool(specular), bool(diffuse), bool(refraction)
         # one drawn interaction per hit where diffuse reflection or refraction is on; specular
@@ -475,14 +501,8 @@ class Tracer:
             field2 = dr.squared_norm(e_re) + dr.squared_norm(e_im)
         else:  # isotropic element of one polarisation: project on theta-hat or phi-hat of the
             # ray's own arrival direction (the power is the cell mean, so is its projection)
-            rho = dr.sqrt(d.x * d.x + d.y * d.y)
-            safe = rho > 1e-7
-            cphi = dr.select(safe, d.x / rho, 1.0)
-            sphi = dr.select(safe, d.y / rho, 0.0)
-            if self.rx_polarization == "V":
-                u = mi.Vector3f(d.z * cphi, d.z * sphi, -rho)
-            else:
-                u = mi.Vector3f(-sphi, cphi, 0.0)
+            theta_hat, phi_hat = _theta_phi_hat(dr, mi, d)
+            u = theta_hat if self.rx_polarization == "V" else phi_hat
             field2 = dr.square(dr.dot(e_re, u)) + dr.square(dr.dot(e_im, u))
         power = field2 * self.power_scale / dr.abs(d.z)
         cell = cell_offset + mi.UInt32(row) * g["nx_int"] + mi.UInt32(col)
@@ -491,12 +511,18 @@ class Tracer:
         dr.eval(*out.values())
         return {k: v.numpy() for k, v in out.items()}
 
+    def face_at(self, ids, prim, active):
+        """Global face index and unit normal of the hit (Mitsuba shape id ``ids``, primitive
+        ``prim``) on the active lanes; misses carry no valid triangle index, so inactive lanes
+        never gather with it (no bounds checks)."""
+        dr, mi = self.dr, self.mi
+        face = dr.gather(mi.UInt32, self.face_offset, ids, active) + dr.select(active, prim, 0)
+        return face, dr.gather(mi.Vector3f, self.face_normals, face, active)
+
     def _reflect(self, st, t, ids, prim, keep):
         dr, mi = self.dr, self.mi
         d = st["d"]
-        # misses carry no valid triangle index: never gather with it (no bounds checks)
-        face = dr.gather(mi.UInt32, self.face_offset, ids, keep) + dr.select(keep, prim, 0)
-        n = dr.gather(mi.Vector3f, self.face_normals, face, keep)
+        _, n = self.face_at(ids, prim, keep)
         n = dr.select(dr.dot(d, n) > 0, -n, n)
         eta_re, eta_im, thick, spec = (dr.gather(mi.Float, table, ids, keep) for table in self.mat)
         r = reflection_terms(dr, mi, d, n, st["e_re"], st["e_im"], eta_re, eta_im, thick, self.wavelength)
@@ -567,8 +593,7 @@ class Tracer:
         left (no energy, a diffuse direction below the face) stop."""
         dr, mi = self.dr, self.mi
         d = st["d"]
-        face = dr.gather(mi.UInt32, self.face_offset, ids, keep) + dr.select(keep, prim, 0)
-        n = dr.gather(mi.Vector3f, self.face_normals, face, keep)
+        _, n = self.face_at(ids, prim, keep)
         n = dr.select(dr.dot(d, n) > 0, -n, n)  # faces the side the ray comes from
         eta_re, eta_im, thick, _ = (dr.gather(mi.Float, table, ids, keep) for table in self.mat)
         s_coef, kx, pat = (dr.gather(type(table), table, ids, keep) for table in self.scat)
