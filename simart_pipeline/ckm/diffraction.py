@@ -4,27 +4,36 @@ RadioMapSolver computes it, deposited into the same per-cell moments as the shoo
 Per transmitter, after Sionna RT 2.2 (``RadioMapSolver._shoot_and_bounce`` and
 ``_evaluate_first_order_diffraction``):
 
-1. **Lit wedges.** The lattice rays' first hits name the triangles the transmitter sees; their
-   convex edges (Sionna's ``wedge_geometry``: two faces, interior angle below pi) and, with
+1. **Lit wedges.** The lattice rays' first hits (collected by the specular tracer as it traces
+   them, :meth:`Tracer.collect_lit`) name the triangles the transmitter sees; their convex edges
+   (Sionna's ``wedge_geometry``: two faces, interior angle below pi) and, with
    ``edge_diffraction``, their free edges are the candidates, each once (the same pair of end
    points, rounded to :data:`WEDGE_KEY_M`, on the same shape). Flat edges do not diffract.
-2. **Samples on the wedges.** ``num_samples`` points are spread over the wedges in proportion to
-   their length (largest remainders first, at least one each), each with a direction on its
-   Keller cone (the exterior angle, lit region included); the ``k``-th of a wedge's ``n`` samples
-   sits at ``u = (k + 1/2) / n`` along it and ``v = frac(k / golden ratio)`` round the cone, a
-   rank-1 lattice, so the result is deterministic. A sample counts where the transmitter sees
-   the point, also from 5 cm off the edge (Sionna's guard against leaks through the faces).
-3. **Flux of a sample.** Its field is Sionna's UTD evaluation of the wedge's radio material
+2. **Where samples count** (:meth:`DiffractionSampler.pilot`). :data:`PILOT_POINTS` points per
+   pair find the stretch of the edge the source sees and where some of the cone points down to a
+   grid plane; a point above every grid plane draws its direction from the cone's downward arc
+   only (:func:`keller_cone`: a ray that leaves upwards comes down only off a downward-facing
+   face, which extruded buildings do not have; on a roof edge that arc is a third of the cone).
+   On Sionna's street canyon 35 % of the direct wedges' length and half of the reflected pairs'
+   is seen by no point, and 42 % / 25 % of uniform samples could deposit at all.
+3. **Samples on the wedges.** ``num_samples`` points are spread over the pairs in proportion to
+   ``length x seen stretch x mean downward arc`` (largest remainders first, at least one for a
+   pair the pilot found), each over its seen stretch, its direction on the (downward) arc; the
+   ``k``-th of a pair's ``n`` samples sits at ``u = (k + 1/2) / n`` along the stretch and
+   ``v = frac(k / golden ratio)`` round the arc, a rank-1 lattice, so the result is
+   deterministic. A sample counts where the transmitter sees the point, also from 5 cm off the
+   edge (Sionna's guard against leaks through the faces).
+4. **Flux of a sample.** Its field is Sionna's UTD evaluation of the wedge's radio material
    (``RadioMapSolver._evaluate_radio_material_diffraction``, spreading factor included) at
    ``s_ref``, where the diffracted ray first meets the scene or a grid plane; its weight is
    the change of variables from (position on the edge, angle on the cone) to the area of a
    plane normal to the ray at ``s_ref`` (:func:`diffracted_bundle_area`, as Sionna's
-   ``RadioMap._diffraction_integration_weight``), times edge
-   length and cone angle over the wedge's sample count. ``|E|^2`` falls as
+   ``RadioMap._diffraction_integration_weight``), times the stretch's length and the arc's
+   angle over the pair's sample count. ``|E|^2`` falls as
    ``1 / (s s' (s + s'))`` and that area grows as ``s (s + s') / s'``: their product, the flux,
    is the same all along the ray (the transition function's dependence on ``s`` aside: hence
    ``s_ref`` at the first crossing).
-4. **On through the specular tracer.** The ray is handed to :meth:`Tracer.propagate` with its
+5. **On through the specular tracer.** The ray is handed to :meth:`Tracer.propagate` with its
    field scaled so that the tracer's ``4 pi / num_rays`` becomes that flux: it deposits
    ``|E|^2 weight / |cos theta_z|`` on every plane it crosses (RadioMapSolver's estimator for
    diffracted rays on the first crossing) and reflects specularly up to ``max_depth - 1`` more
@@ -36,17 +45,17 @@ Moving ``q`` along the edge to the centre's own diffraction point changes the le
 second order (Fermat: the diffracted path is stationary along the edge), so this is the centre's
 delay to first order, as the image-source correction is for reflections.
 
-Traced: (diffraction) and (diffraction, reflection...) paths. Not traced: a reflection before the
-diffraction and second-order diffraction (RadioMapSolver traces neither; PathSolver has the
-first); docs/ckm-one-pass.md gives the measured effect.
+Traced: (diffraction) and, with depth >= 2, (reflection, diffraction) paths, either followed by
+specular reflections. Not traced: two reflections before a diffraction and second-order
+diffraction (RadioMapSolver traces neither); docs/ckm-one-pass.md gives the measured effect.
 """
 
 from __future__ import annotations
 
 import numpy as np
-import pandas as pd
 
-from simart_pipeline.ckm.shoot_bounce import _SPAWN_EPSILON, Grid, fibonacci_directions, reflection_terms
+from simart_pipeline.ckm.shoot_bounce import (_SPAWN_EPSILON, Grid, _unique_keys, fibonacci_directions,
+                                               reflection_terms)
 
 __all__ = ["DiffractionSampler", "WEDGE_KEY_M", "diffracted_bundle_area"]
 
@@ -54,17 +63,19 @@ WEDGE_KEY_M = 1e-3      # end points closer than this are the same edge
 LEAK_OFFSET_M = 5e-2    # Sionna's offset of the visibility-test point off the wedge
 SPAWN_OFFSET_M = 1e-3   # diffracted rays start this far off the edge
 MAX_REFERENCE_DISTANCE_M = 1e4  # a diffracted ray meeting nothing: its field is taken this far out
-# Samples per lattice ray on the direct wedges, and the (image, wedge) pairs' share of those: at
-# 4e6 rays on Munich (2 m cells, min_hits_for_power 5) 1x, 2x and 4x direct samples give a value
-# in 91.6 %, 94.6 % and 98.8 to 99.4 % of the sampled outdoor cells where PathSolver finds a path; 4x
-# reflected samples instead of direct ones only 97.0 % (docs/ckm-one-pass.md).
-DIRECT_SAMPLES_PER_RAY = 4
+# Samples per lattice ray on the direct wedges, and the (image, wedge) pairs' share of those. Before
+# the pilot, 4 per ray on Munich gave a value in 96.6 % of the sampled outdoor cells PathSolver
+# reaches (benchmarks.ckm_solver, 1e7 rays, 2 m cells); with the pilot and the downward arc, 2 per
+# ray give 99.2 % (street canyon 100 %, urban 100 %) in less time (docs/ckm-one-pass.md).
+DIRECT_SAMPLES_PER_RAY = 2
 REFLECTED_SAMPLE_SHARE = 0.125
+PILOT_POINTS = 32  # lattice points per (source, wedge) pair that find where it can diffract (pilot)
+PILOT_BATCH = 1 << 22  # pilot points evaluated at once
 DEPARTURE_QUANTUM = 2.0**-7  # diffracted paths' departure directions (for beams and angles)
 SAMPLES_PER_BATCH_RAY = 4  # diffraction samples traced at once per lattice ray of a batch: a
 #                            sample's state is smaller than a ray's, and fewer launches cost less
 DIFFRACTED_RAY_KEY = 0x9E3779B9  # diffracted rays' random-number keys: sample index plus this
-_GOLDEN_RATIO = (1.0 + 5.0**0.5) / 2.0
+_LATTICE_STEP = 0x9E3779B9  # round(2**32 / golden ratio): the lattice's cone coordinate, fixed point
 
 
 class DiffractionSampler:
@@ -90,6 +101,8 @@ class DiffractionSampler:
         self.edge_diffraction = bool(edge_diffraction)
         self._wedge_np: dict[str, np.ndarray] = {}
         self._dr_all = None  # _wedge_np as Dr.Jit arrays, built on first use
+        self._u_lo = self._u_span = self._weight = None  # from pilot()
+        self._dr_span = None
 
     @property
     def num_wedges(self) -> int:
@@ -101,20 +114,25 @@ class DiffractionSampler:
         """Wedges of the triangles that ``num_rays`` lattice rays from the transmitter hit first
         (source: the transmitter) and, with ``reflections_before``, after one specular reflection
         (source: the transmitter's image in the reflecting face's plane); returns how many
-        (source, wedge) pairs."""
+        (source, wedge) pairs. The hits the tracer collected while tracing these rays
+        (``Tracer.lit_faces`` / ``lit_pairs``) are used where it did; else the rays are cast here."""
         dr, mi = self.dr, self.mi
         tr = self.tracer
+        direct = list(tr.lit_faces or [])
+        reflected = list(tr.lit_pairs or []) if self.reflections_before else []
+        cast_direct = tr.lit_faces is None
+        cast_reflected = self.reflections_before and tr.lit_pairs is None
         tx = mi.Point3f(*(float(v) for v in self.tx))
-        direct, reflected = [], []
-        for start in range(0, int(num_rays), int(batch_rays)):
+        for start in range(0, int(num_rays) if (cast_direct or cast_reflected) else 0, int(batch_rays)):
             stop = min(start + int(batch_rays), int(num_rays))
             d = fibonacci_directions(start, stop, int(num_rays))
             o = dr.zeros(mi.Point3f, stop - start) + tx
             pi = self.scene.ray_intersect_preliminary(mi.Ray3f(o, d), False)
             hit = pi.is_valid()
             face, n = tr.face_at(dr.reinterpret_array(mi.UInt32, pi.shape), pi.prim_index, hit)
-            direct.append(_unique_faces(dr, mi, face, hit))
-            if self.reflections_before:
+            if cast_direct:
+                direct.append(_unique_keys(dr, face, hit))
+            if cast_reflected:
                 n = dr.select(dr.dot(d, n) > 0, -n, n)  # towards the transmitter's side
                 p = o + dr.select(hit, pi.t, 0.0) * d
                 d_r = d - 2.0 * dr.dot(d, n) * n
@@ -122,7 +140,9 @@ class DiffractionSampler:
                 pi2 = self.scene.ray_intersect_preliminary(mi.Ray3f(o_r, d_r), False, hit)
                 hit2 = hit & pi2.is_valid()
                 face2, _ = tr.face_at(dr.reinterpret_array(mi.UInt32, pi2.shape), pi2.prim_index, hit2)
-                reflected.append(_unique_faces(dr, mi, (mi.UInt64(face) << 32) | mi.UInt64(face2), hit2))
+                reflected.append(_unique_keys(dr, (mi.UInt64(face) << 32) | mi.UInt64(face2), hit2))
+        if not direct:
+            direct = [np.zeros(0, np.uint64)]
         faces = tr.faces
         cols = self._candidates(faces.shape_and_primitive(np.unique(np.concatenate(direct))), None)
         if self.reflections_before and reflected:
@@ -133,6 +153,8 @@ class DiffractionSampler:
             cols = {k: np.concatenate([cols[k], v]) for k, v in self._candidates(pairs[:, :2], pairs[:, 2]).items()}
         self._wedge_np = cols
         self._dr_all = None
+        self._u_lo = self._u_span = self._weight = None
+        self._dr_span = None
         return self.num_wedges
 
     def _candidates(self, triangles: np.ndarray, reflector_face: np.ndarray | None) -> dict[str, np.ndarray]:
@@ -236,38 +258,106 @@ class DiffractionSampler:
     def allocation(self, num_samples: int) -> np.ndarray:
         """Samples per (source, wedge): ``num_samples`` for the direct wedges and
         :data:`REFLECTED_SAMPLE_SHARE` of that for the (image, wedge) pairs, each spread in
-        proportion to length, largest remainders, at least one each."""
-        length = self._wedge_np["length"].astype(np.float64)
-        n = np.zeros(len(length), np.int64)
+        proportion to the pairs' weights (:meth:`pilot`; edge length before it), largest
+        remainders, at least one for a pair of positive weight, none for the others."""
+        weight = self._weight if self._weight is not None else self._wedge_np["length"].astype(np.float64)
+        n = np.zeros(len(weight), np.int64)
         for order in np.unique(self._wedge_np["order"]):
-            sel = np.flatnonzero(self._wedge_np["order"] == order)
+            sel = np.flatnonzero((self._wedge_np["order"] == order) & (weight > 0))
+            if not len(sel):
+                continue
             total = int(num_samples if order == 0 else round(num_samples * REFLECTED_SAMPLE_SHARE))
-            share = total * length[sel] / length[sel].sum()
+            share = total * weight[sel] / weight[sel].sum()
             k = np.floor(share).astype(np.int64)
             left = int(total - k.sum())
             if left > 0:
                 k[np.argsort(-(share - k), kind="stable")[:left]] += 1
-            n[sel] = k
-        return np.maximum(n, 1)
+            n[sel] = np.maximum(k, 1)
+        return n
+
+    def pilot(self, points: int | None = None) -> None:
+        """Where each (source, wedge) pair can diffract towards a grid plane, from ``points``
+        lattice points per pair (validity depends on the position along the edge only: the source
+        sees it, and some of its cone points down, see :func:`keller_cone`): the samples are then
+        spread over the hull of the valid points widened by one spacing on either side, and the
+        pairs get samples in proportion to ``length x hull x mean downward measure`` (equal
+        density of samples per unit of edge and cone angle that can deposit). A pair with no valid
+        point gets none: a lit stretch shorter than ``length / points`` can be missed.
+        ``points`` 0: no pilot, every pair's whole edge, in proportion to its length."""
+        mi = self.mi
+        num = self.num_wedges
+        order = self._wedge_np["order"]
+        points = PILOT_POINTS if points is None else int(points)
+        lo, span, weight = np.zeros(num), np.ones(num), np.zeros(num)
+        if points == 0:
+            weight = self._wedge_np["length"].astype(np.float64)
+        k = np.arange(points)
+        for o in (0, 1) if points else ():
+            pairs = np.flatnonzero(order == o)
+            for chunk in np.array_split(pairs, max(1, len(pairs) * points // PILOT_BATCH + 1)):
+                if not len(chunk):
+                    continue
+                w = mi.UInt32(np.repeat(chunk, points).astype(np.uint32))
+                kk = np.tile(k, len(chunk)).astype(np.uint32)
+                u = mi.Float(((kk + 0.5) / points).astype(np.float32))
+                v = mi.Float((mi.UInt32(kk) * _LATTICE_STEP) >> 8) * (2.0**-24)
+                g = self._geometry(w, u, v, o)
+                valid = g["ok"].numpy().reshape(-1, points)
+                measure = np.where(valid, g["measure"].numpy().reshape(-1, points), 0.0)
+                seen = valid.any(1)
+                first = np.argmax(valid, 1)
+                last = points - 1 - np.argmax(valid[:, ::-1], 1)
+                a = np.clip((first - 0.5) / points, 0.0, 1.0)
+                b = np.clip((last + 1.5) / points, 0.0, 1.0)
+                lo[chunk] = np.where(seen, a, 0.0)
+                span[chunk] = np.where(seen, b - a, 1.0)
+                mean_measure = measure.sum(1) / np.maximum(valid.sum(1), 1)
+                weight[chunk] = np.where(seen, self._wedge_np["length"][chunk] * (b - a) * mean_measure, 0.0)
+        self._u_lo, self._u_span, self._weight = lo, span, weight
+        self._dr_span = None
 
     def trace(self, num_samples: int, batch: int, sink) -> None:
         """Samples on the wedges found by :meth:`find_wedges`, deposits handed to ``sink``."""
         if self.num_wedges == 0 or num_samples <= 0:
             return
+        mi = self.mi
+        if self._weight is None:
+            self.pilot()
         counts = self.allocation(int(num_samples))
         ends = np.cumsum(counts)
-        for start in range(0, int(ends[-1]), int(batch)):
-            index = np.arange(start, min(start + int(batch), int(ends[-1])))
-            w = np.searchsorted(ends, index, side="right")  # the pair each sample belongs to
-            kk = (index - (ends[w] - counts[w])).astype(np.float64)  # its rank within the pair
-            n_w = counts[w].astype(np.float64)
-            u = (kk + 0.5) / n_w
-            v = np.mod(kk / _GOLDEN_RATIO, 1.0)
-            order = self._wedge_np["order"][w]
-            for o in (0, 1):
-                sel = order == o
-                if sel.any():
-                    self._trace_batch(w[sel], u[sel], v[sel], n_w[sel], index[sel], o, sink)
+        order = self._wedge_np["order"]
+        if np.any(np.diff(order) < 0):
+            raise AssertionError("find_wedges stores the direct wedges before the reflected pairs")
+        starts = mi.UInt32((ends - counts).astype(np.uint32))
+        n_all = mi.UInt32(counts.astype(np.uint32))
+        # the samples of each source order are contiguous: batches never mix orders
+        split = int(ends[order == 0][-1]) if (order == 0).any() else 0
+        for o, lo, hi in ((0, 0, split), (1, split, int(ends[-1]))):
+            for start in range(lo, hi, int(batch)):
+                stop = min(start + int(batch), hi)
+                # the pair each sample belongs to: np.repeat over the pairs the batch touches
+                w0, w1 = np.searchsorted(ends, [start, stop - 1], side="right")
+                span = np.arange(w0, w1 + 1)
+                reps = np.maximum(np.minimum(ends[span], stop) - np.maximum(ends[span] - counts[span], start), 0)
+                w = mi.UInt32(np.repeat(span, reps).astype(np.uint32))
+                self._trace_batch(w, self._lattice(start, stop, w, starts, n_all), o, sink)
+
+    def _lattice(self, start: int, stop: int, w, starts, n_all):
+        """The rank-1 lattice points of samples ``start..stop-1`` (pairs ``w``): the ``k``-th of
+        a pair's ``n`` at ``u = lo + span (k + 1/2) / n`` along the edge (``lo``, ``span``: the
+        pair's stretch from :meth:`pilot`), ``v = frac(k / golden ratio)`` round the cone (32-bit
+        fixed point, exact for any ``k``); the share of the edge each sample stands for,
+        ``span / n``; and each sample's global index."""
+        dr, mi = self.dr, self.mi
+        if self._dr_span is None:
+            self._dr_span = (mi.Float(self._u_lo.astype(np.float32)), mi.Float(self._u_span.astype(np.float32)))
+        index = dr.arange(mi.UInt32, start, stop)
+        k = index - dr.gather(mi.UInt32, starts, w)
+        n_w = mi.Float(dr.gather(mi.UInt32, n_all, w))
+        lo, span = (dr.gather(mi.Float, a, w) for a in self._dr_span)
+        u = lo + span * (mi.Float(k) + 0.5) / n_w
+        v = mi.Float((k * _LATTICE_STEP) >> 8) * (2.0**-24)
+        return dict(u=u, v=v, edge_share=span / n_w, index=index)
 
     def _incident(self, q, q_off, src, plane_n, plane_off, order: int):
         """Where the source's field reaches ``q``: (valid, Jones vector of the field arriving at
@@ -285,7 +375,8 @@ class DiffractionSampler:
         ki = dr.normalize(q - src)
         s_prime = dr.norm(q - src)
         if order == 0:
-            ok = ~self.scene.ray_test(spawn_ray_to(tx, q)) & ~self.scene.ray_test(spawn_ray_to(tx, q_off))
+            ok = ~self.scene.ray_test(spawn_ray_to(tx, q))
+            ok &= ~self.scene.ray_test(spawn_ray_to(tx, q_off), ok)
             return ok, antenna_pattern_to_world_implicit(pattern, to_world, ki, direction="out"), ki, s_prime, ki
         # one reflection: the path tx -> r -> q with r where q's line to the image source crosses
         # the plane; it exists when r lies on a face of that plane and both legs are clear
@@ -302,7 +393,8 @@ class DiffractionSampler:
         ok &= dr.abs(dr.dot(n_hit, plane_n)) > 1.0 - 1e-4
         r_off = r + 1e-3 * plane_n
         ok &= ~self.scene.ray_test(spawn_ray_to(tx, r_off), ok)
-        ok &= ~self.scene.ray_test(spawn_ray_to(r_off, q), ok) & ~self.scene.ray_test(spawn_ray_to(r_off, q_off), ok)
+        ok &= ~self.scene.ray_test(spawn_ray_to(r_off, q), ok)
+        ok &= ~self.scene.ray_test(spawn_ray_to(r_off, q_off), ok)
         dep = dr.normalize(r - tx)
         er, ei = jones_to_world(antenna_pattern_to_world_implicit(pattern, to_world, dep, direction="out"), dep)
         # specular reflection at r: the tracer's slab TE/TM coefficients and sqrt(1 - S^2)
@@ -312,33 +404,49 @@ class DiffractionSampler:
         out_im = spec * (r["a_i"] * r["e_s"] + r["b_i"] * r["e_pr"])
         return ok, world_to_jones(out_re, out_im, ki), ki, s_prime, dep
 
-    def _trace_batch(self, w_index, u, v, n_w, sample_index, order: int, sink) -> None:
+    def _geometry(self, w_index, u, v, order: int) -> dict:
+        """Sample points ``u`` along the edges of pairs ``w_index``, cone coordinates ``v``:
+        the wedges, the point ``q``, the incident field (:meth:`_incident`), the diffracted
+        direction ``ko`` and its arc's measure, and ``ok`` where the sample can deposit."""
         dr, mi = self.dr, self.mi
         from sionna.rt.constants import MIN_SEGMENT_LENGTH
-        from sionna.rt.radio_map_solvers.radio_map_solver import RadioMapSolver
-        from sionna.rt.utils.ray_tracing import sample_keller_cone_with_measure
 
         wedges, src, plane_n, plane_off = self._wedge_geometry(w_index)
-        q = wedges.o + mi.Float(u.astype(np.float32)) * wedges.length * wedges.e_hat
+        q = wedges.o + u * wedges.length * wedges.e_hat
         free_edge = wedges.primn == wedges.prim0
         ne = dr.select(free_edge, mi.Vector3f(0), dr.normalize(wedges.n0 + wedges.nn))
         q_off = q + LEAK_OFFSET_M * ne
         ok, e_in, ki, s_prime, dep = self._incident(q, q_off, src, plane_n, plane_off, order)
         ok &= s_prime > MIN_SEGMENT_LENGTH
-        ko, measure = sample_keller_cone_with_measure(wedges.e_hat, wedges.n0, wedges.nn,
-                                                      mi.Float(v.astype(np.float32)), ki, True)
+        # above every grid plane only the cone's downward arc can reach one (see keller_cone)
+        downward = q.z > float(max(self.grid.heights)) + SPAWN_OFFSET_M
+        ko, measure = keller_cone(dr, mi, wedges.e_hat, wedges.n0, wedges.nn, v, ki, downward)
+        ok &= measure > 0
+        return dict(wedges=wedges, q=q, ne=ne, ok=ok, e_in=e_in, ki=ki, s_prime=s_prime, dep=dep, ko=ko,
+                    measure=measure)
+
+    def _trace_batch(self, w_index, lattice: dict, order: int, sink) -> None:
+        dr, mi = self.dr, self.mi
+        from sionna.rt.constants import MIN_SEGMENT_LENGTH
+        from sionna.rt.radio_map_solvers.radio_map_solver import RadioMapSolver
+
+        g = self._geometry(w_index, lattice["u"], lattice["v"], order)
+        wedges, q, ne, ok, e_in, ki, s_prime, dep, ko, measure = (
+            g[k] for k in ("wedges", "q", "ne", "ok", "e_in", "ki", "s_prime", "dep", "ko", "measure"))
         # leave the edge by a millimetre into the exterior (ne + ko points there for any ko on the
         # cone), else the first intersection is the wedge's own face at t ~ 0
         ray = mi.Ray3f(q + SPAWN_OFFSET_M * (ne + ko), ko)
         # the field is evaluated where the diffracted ray first meets the scene or a grid plane
         # (the UTD transition function depends on that distance; the flux does not, see module doc)
-        first = self.scene.ray_intersect_preliminary(ray, False)
-        s_ref = dr.select(first.is_valid(), first.t, dr.inf)
+        first = self.scene.ray_intersect_preliminary(ray, False, ok)
+        t_first = dr.select(first.is_valid(), first.t, dr.inf)
+        s_ref = t_first
         for height in self.grid.heights:
             t_h = (float(height) - ray.o.z) / ray.d.z
             s_ref = dr.select((t_h > 0) & (t_h < s_ref), t_h, s_ref)
         s_ref = dr.clip(s_ref, 2.0 * MIN_SEGMENT_LENGTH, MAX_REFERENCE_DISTANCE_M)
-        dr.eval(ok, s_ref)
+        shape_id = dr.reinterpret_array(mi.UInt32, first.shape)
+        dr.eval(ok, s_ref, t_first, shape_id, first.prim_index)
         idx = dr.compress(ok)
         if dr.width(idx) == 0:
             return
@@ -354,7 +462,7 @@ class DiffractionSampler:
             None, mi.ShapePtr(wq.shape), wq, qq, kki, kko, [take(e_in)], sr, sp, dr.full(mi.Bool, True, n))[0]
         # the flux of the ray: its field at s_ref times the area it stands for there
         area = diffracted_bundle_area(sr, sp, kki, wq.e_hat)
-        area *= wq.length * take(measure) / mi.Float(n_w.astype(np.float32)[idx.numpy()])
+        area *= wq.length * take(measure) * take(lattice["edge_share"])
         # The tracer deposits |E|^2 (4 pi / num_rays) / |cos| per crossing: scale the field so that
         # its solid-angle factor becomes this ray's area per sample
         scale = dr.sqrt(dr.maximum(area, 0.0) * (self.tracer.num_rays / (4.0 * np.pi)))
@@ -367,9 +475,55 @@ class DiffractionSampler:
             # diffuse reflection or refraction on: the tracer's random numbers are keyed by a ray
             # index (not a lattice ray's: offset), and the delay restarts at q (``anchor``: the
             # path length there), so a deposit's is |q - tx| + |c - q| exactly
-            state.update(idx=mi.UInt32((sample_index[idx.numpy()] + DIFFRACTED_RAY_KEY) % 2**32),
-                         anchor=sp)
-        self.tracer.propagate(state, sink, self.reflections_after - order, from_transmitter=False)
+            state.update(idx=take(lattice["index"]) + DIFFRACTED_RAY_KEY, anchor=sp)
+        # the tracer's first segment is this very ray: its intersection is not cast again
+        self.tracer.propagate(state, sink, self.reflections_after - order, from_transmitter=False,
+                              first_hit=(take(t_first), take(shape_id), take(first.prim_index)))
+
+
+def keller_cone(dr, mi, e_hat, n0, nn, sample, ki, downward):
+    """A direction on the Keller cone of the wedge (``e_hat``, faces' normals ``n0``, ``nn``) for
+    an incident ``ki``, and the angular measure of the arc it was drawn from: Sionna's
+    ``sample_keller_cone_with_measure`` (the whole exterior angle, lit region included), except on
+    the lanes ``downward``, where ``sample`` spreads over the part of the exterior arc whose
+    directions point down (``k_z < 0``) and the measure is that part's length (0: none points
+    down, the sample is void).
+
+    Why: a diffracted ray that leaves a point above every grid plane upwards can reach a plane only
+    by reflecting off a downward-facing face (a wall keeps ``k_z`` positive), which the scenes'
+    extruded buildings do not have. On a roof edge that is two thirds of the cone (270 degrees of
+    exterior, 90 of them downward): the samples go where they count. The estimate of the downward
+    part is unbiased (uniform on the arc, measure its length); paths up and back down are not
+    traced.
+
+    In Sionna's frame (``t0 = n0 x e_hat``, ``e_fwd`` = the edge along ``ki``), the direction at
+    cone angle ``phi`` is ``sin b (cos phi t0 + sin phi n0) + cos b e_fwd``; its z component is
+    ``sin b R cos(phi - phi0) + cos b e_fwd.z`` with ``R cos phi0 = t0.z``, ``R sin phi0 = n0.z``:
+    negative on the arc of half-width ``acos(cos b e_fwd.z / (sin b R))`` about ``phi0 + pi``."""
+    from sionna.rt.utils.wedges import wedge_interior_angle
+
+    t0 = dr.normalize(dr.cross(n0, e_hat))
+    e_fwd = dr.select(dr.dot(e_hat, ki) > 0, e_hat, -e_hat)
+    cos_b = dr.clip(dr.dot(ki, e_fwd), -1.0, 1.0)
+    sin_b = dr.safe_sqrt(1.0 - cos_b * cos_b)
+    exterior = dr.two_pi - wedge_interior_angle(n0, nn)
+    r = dr.sqrt(t0.z * t0.z + n0.z * n0.z)
+    c = cos_b * e_fwd.z
+    amp = sin_b * r
+    # the downward arc [a, a + 2 half) modulo 2 pi, cut to the exterior [0, exterior)
+    all_down = c < -amp  # every direction of the cone points down (also amp = 0, c < 0)
+    half = dr.select(all_down, dr.pi, dr.select(c >= amp, 0.0, dr.acos(dr.clip(c / dr.maximum(amp, 1e-30), -1.0, 1.0))))
+    centre = dr.atan2(n0.z, t0.z) + dr.pi
+    a = dr.select(all_down, 0.0, centre - half)
+    a = a - dr.two_pi * dr.floor(a / dr.two_pi)
+    end = a + 2.0 * half
+    len1 = dr.maximum(dr.minimum(dr.minimum(end, dr.two_pi), exterior) - a, 0.0)
+    len2 = dr.maximum(dr.minimum(end - dr.two_pi, exterior), 0.0)
+    s = sample * (len1 + len2)
+    phi = dr.select(downward, dr.select(s < len1, a + s, s - len1), sample * exterior)
+    measure = dr.select(downward, len1 + len2, exterior)
+    sin_phi, cos_phi = dr.sincos(phi)
+    return sin_phi * sin_b * n0 + cos_phi * sin_b * t0 + cos_b * e_fwd, measure
 
 
 def _implicit_basis(k):
@@ -412,15 +566,6 @@ def diffracted_bundle_area(s_m, s_prime_m, ki, e_hat):
 
     sin2_beta = dr.maximum(1.0 - dr.square(dr.dot(ki, e_hat)), 0.0)
     return s_m * (s_m + s_prime_m) * sin2_beta / s_prime_m
-
-
-def _unique_faces(dr, mi, key, active) -> np.ndarray:
-    """Distinct values of the UInt32/UInt64 ``key`` over the active lanes (hash-based: millions of
-    hits, few distinct keys)."""
-    idx = dr.compress(active)
-    k = dr.gather(type(key), key, idx)
-    dr.eval(k)
-    return np.zeros(0, np.uint64) if dr.width(idx) == 0 else pd.unique(k.numpy().astype(np.uint64))
 
 
 _KEYS = ("shape", "prim0", "primn", "local_edge", "o", "e_hat", "n0", "nn", "length", "src", "plane_n",

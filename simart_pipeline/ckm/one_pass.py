@@ -305,17 +305,21 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                      with_beams=codebook is not None, specular=specular_reflection, refraction=refraction,
                      diffuse=diffuse_reflection)
     acc = _Accumulator(grid, tx_position_m, codebook, ant, rot, radio.wavelength_m)
+    with_diffraction = diffraction and int(max_depth) > 0
+    reflections_before = 1 if specular_reflection and depth >= 2 else 0
+    if with_diffraction:  # the lattice rays' hits name the lit wedges: collected as they are traced
+        tracer.collect_lit(pairs=bool(reflections_before))
     with _InOrderWorker(acc) as sink:
         for start in range(0, int(num_rays), int(batch_rays)):
             tracer.trace(start, min(start + int(batch_rays), int(num_rays)), sink)
-        if diffraction and int(max_depth) > 0:  # Sionna counts a diffraction as one interaction of max_depth
+        if with_diffraction:  # Sionna counts a diffraction as one interaction of max_depth
             from simart_pipeline.ckm.diffraction import (DIRECT_SAMPLES_PER_RAY, SAMPLES_PER_BATCH_RAY,
                                                           DiffractionSampler)
 
             # the diffraction is one of max_depth interactions; specular ones may follow it
             wedges = DiffractionSampler(radio, tracer, tx_position_m, rot, grid, depth - 1 if depth else 0,
                                         edge_diffraction,
-                                        reflections_before=1 if specular_reflection and depth >= 2 else 0)
+                                        reflections_before=reflections_before)
             wedges.find_wedges(int(num_rays), int(batch_rays))
             wedges.trace(int(DIRECT_SAMPLES_PER_RAY * num_rays if diffraction_samples is None else diffraction_samples),
                          SAMPLES_PER_BATCH_RAY * int(batch_rays), sink)

@@ -46,6 +46,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import pandas as pd
 from scipy.constants import epsilon_0
 
 # Departure directions are quantised for the beam gains on a grid of 2**-13 in direction cosines
@@ -423,6 +424,8 @@ class Tracer:
         self.face_offset = mi.UInt32(self.faces.offsets_by_shape_id().astype(np.uint32))
         self.mat = tuple(mi.Float(np.asarray(a, np.float32)) for a in (eta_re, eta_im, thick, spec))
         self.specular, self.diffuse, self.refraction = bool(specular), bool(diffuse), bool(refraction)
+        self.lit_faces: list | None = None  # see collect_lit
+        self.lit_pairs: list | None = None
         # one drawn interaction per hit where diffuse reflection or refraction is on; specular
         # reflection alone keeps the deterministic _reflect
         self.sampled = self.diffuse or self.refraction
@@ -510,6 +513,31 @@ class Tracer:
         out.update(direction_terms(d_c, d_dep, self.rot, self.with_beams))
         dr.eval(*out.values())
         return {k: v.numpy() for k, v in out.items()}
+
+    def collect_lit(self, pairs: bool) -> None:
+        """From now on, collect the lattice rays' first hits (global face indices, ``lit_faces``)
+        and, with ``pairs`` and specular reflection alone (a drawn interaction is no mirror), the
+        (first, second) face pairs of their specular reflections (``lit_pairs``): the lit wedges of
+        :class:`simart_pipeline.ckm.diffraction.DiffractionSampler`, without casting the rays again."""
+        self.lit_faces = []
+        self.lit_pairs = [] if pairs and not self.sampled else None
+
+    def _record_lit(self, depth: int, ids, prim, hit, prev):
+        """Collect the lit faces (depth 0) and, after a specular reflection, the (first, second)
+        face pairs (depth 1) of the lattice rays, as 64-bit keys ``first << 32 | second``;
+        returns what depth 1 needs of depth 0 (its faces and hits)."""
+        dr, mi = self.dr, self.mi
+        if self.lit_faces is None:
+            return None
+        face, _ = self.face_at(ids, prim, hit)
+        if depth == 0:
+            self.lit_faces.append(_unique_keys(dr, face, hit))
+            return face, hit
+        if self.lit_pairs is not None and not self.sampled and prev is not None:
+            # _reflect keeps the hit lanes in order: the reflected ray j is lattice ray compress(hit)[j]
+            first = dr.gather(mi.UInt32, prev[0], dr.compress(prev[1]))
+            self.lit_pairs.append(_unique_keys(dr, (mi.UInt64(first) << 32) | mi.UInt64(face), hit))
+        return None
 
     def face_at(self, ids, prim, active):
         """Global face index and unit normal of the hit (Mitsuba shape id ``ids``, primitive
@@ -674,23 +702,31 @@ class Tracer:
         if stop > start:
             self.propagate(self.launch(start, stop), sink, self.max_depth, from_transmitter=True)
 
-    def propagate(self, st, sink, max_depth: int, from_transmitter: bool) -> None:
+    def propagate(self, st, sink, max_depth: int, from_transmitter: bool, first_hit=None) -> None:
         """Trace ray state ``st`` (:meth:`launch`'s form) through up to ``max_depth``
         interactions. ``from_transmitter``: its first segment is line of sight (deposited only
         with ``los``, and flagged so); False: rays of a secondary source (diffraction), every
-        segment deposited, none line of sight."""
+        segment deposited, none line of sight. ``first_hit``: (distance, inf for a miss; Mitsuba
+        shape id; primitive) of the first segment when the caller has cast it already."""
         dr, mi = self.dr, self.mi
         dr.eval(*st.values())
+        hit_prev = None
         for depth in range(max_depth + 1):
-            # the preliminary intersection (distance, shape, triangle) is a third of the cost of a
-            # full surface interaction; face normals come from our own table
-            pi = self.scene.ray_intersect_preliminary(mi.Ray3f(st["o"], st["d"]), False)
-            hit = pi.is_valid()
-            t_hit = dr.select(hit, pi.t, dr.inf)
-            ids = dr.reinterpret_array(mi.UInt32, pi.shape)
-            prim = pi.prim_index
+            if depth == 0 and first_hit is not None:
+                t_hit, ids, prim = first_hit
+                hit = t_hit < dr.inf
+            else:
+                # the preliminary intersection (distance, shape, triangle) is a third of the cost
+                # of a full surface interaction; face normals come from our own table
+                pi = self.scene.ray_intersect_preliminary(mi.Ray3f(st["o"], st["d"]), False)
+                hit = pi.is_valid()
+                t_hit = dr.select(hit, pi.t, dr.inf)
+                ids = dr.reinterpret_array(mi.UInt32, pi.shape)
+                prim = pi.prim_index
             dr.eval(t_hit, hit, ids, prim)
             line_of_sight = from_transmitter and depth == 0
+            if from_transmitter and depth <= 1:
+                hit_prev = self._record_lit(depth, ids, prim, hit, hit_prev if depth else None)
             if self.los or not line_of_sight:
                 for height, cell_offset in self.heights:
                     dep = self._deposits(st, t_hit, height, cell_offset)
@@ -704,3 +740,14 @@ class Tracer:
                 st = self._reflect(st, t_hit, ids, prim, hit)
             if st is None:
                 break
+
+
+def _unique_keys(dr, key, active) -> np.ndarray:
+    """Distinct values of the UInt32/UInt64 ``key`` over the active lanes, as uint64 (hash-based:
+    millions of hits, few distinct keys)."""
+    idx = dr.compress(active)
+    if dr.width(idx) == 0:
+        return np.zeros(0, np.uint64)
+    k = dr.gather(type(key), key, idx)
+    dr.eval(k)
+    return pd.unique(k.numpy().astype(np.uint64))
