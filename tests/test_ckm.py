@@ -277,6 +277,28 @@ def test_fast_mode_follows_the_scenes_diffraction_switch(tiny_built, tiny_scene)
     assert with_.sum() > without.sum()
 
 
+def test_ckm_min_effective_hits_for_power_masks_by_the_effective_count_layer(tiny_built, tiny_scene):
+    """ckm.min_effective_hits_for_power reaches the fast-mode layers: the masked map keeps a gain
+    exactly where the default one does and the stored effective_count reaches the minimum (set
+    to mask about a third of the cells), which never exceeds the hit count."""
+    cfg, geom, _, out = tiny_built
+    fast = lambda raw: raw["ckm"].update(tiles=[1, 1], size_m=[80.0, 60.0], cell_size_m=4.0, mode="fast",  # noqa: E731
+                                         num_rays=300_000)
+    plain = _cfg(tiny_scene, fast)
+    radio = RadioScene.from_config(meshes.radio_scene_file(out), plain)
+    a = tile_layers(radio, plain, geom, "r0c0")
+    assert a["effective_count"].attrs["units"] == "1"
+    ess = a["effective_count"].values
+    minimum = float(np.percentile(ess[a["enough_hits"].values], 30))  # masks about a third
+    strict = _cfg(tiny_scene, lambda raw: (fast(raw), raw["ckm"].update(min_effective_hits_for_power=minimum)))
+    b = tile_layers(radio, strict, geom, "r0c0")
+    expected = a["enough_hits"].values & (ess >= minimum)
+    np.testing.assert_array_equal(b["enough_hits"].values, expected)
+    np.testing.assert_array_equal(np.isfinite(b["path_gain_db"].values), expected)
+    assert expected.sum() > 20 and (a["enough_hits"].values & ~expected).sum() > 0
+    assert (ess[a["has_path"].values] <= a["count"].values[a["has_path"].values] + 1e-6).all()
+
+
 def test_cells_with_few_ray_hits_hold_no_gain_toa_or_beams():
     """Fast-mode moments of three cells reached by 1, 4 and 5 ray hits: with min_count_for_power 5
     only the third keeps gain, ToA, LoS and beams; the others keep has_path and their count."""

@@ -332,6 +332,50 @@ def test_accumulation_runs_in_order_and_its_errors_surface():
     assert seen == list(range(8))
 
 
+def test_effective_count_is_kish_for_paths_and_the_hit_count_for_equal_rays():
+    """``effective_count`` = (sum p)^2 / sum p^2: N equal paths give N, one path among much weaker
+    ones about 1, and in free space with an isotropic element (every ray tube of a cell carries
+    nearly the same power: the same distance and incidence to within a cell) it is the hit count
+    to within 2 %."""
+    from simart_pipeline.ckm.moments import layers_from_moments, path_moments
+
+    z = np.zeros((3, 5))
+    power = np.array([[1, 1, 1, 1, 1], [1, 1e-6, 1e-6, 1e-6, 1e-6], [4, 1, 0, 0, 0]], float)
+    valid = power > 0
+    m = path_moments(power, z + 1e-6, valid, valid & False, np.zeros((3, 5, 4)), np.zeros(3))
+    np.testing.assert_allclose(layers_from_moments(m)["effective_count"], [5.0, 1.0 + 8e-6, 25.0 / 17.0], rtol=1e-9)
+    x, y = _axes(-6.0, 6, -6.0, 6, 2.0)
+    om = op.one_pass_moments(RadioScene.from_config(None, _cfg()), np.array([0.0, 0.0, 12.0]), np.zeros(3), x, y, [1.5], 2_000_000, 1,
+                             rx_polarization=None)
+    lay = om.layers()
+    hit = om.count[0] > 0
+    assert hit.all()
+    np.testing.assert_allclose(lay["effective_count"][0][hit], om.count[0][hit], rtol=0.02)
+    assert np.isnan(layers_from_moments(path_moments(z, z, z > 0, z > 0, np.zeros((3, 5, 4)),
+                                                     np.zeros(3)))["effective_count"]).all()
+
+
+def test_a_minimum_effective_count_masks_cells_one_ray_carries():
+    """``min_effective_hits_for_power``: a cell whose gain one contribution carries (effective count
+    below the minimum) is masked like a cell with too few hits, whatever its hit count, and counts
+    as undersampled; 1 changes nothing."""
+    from simart_pipeline.ckm.moments import layers_from_moments, path_moments
+
+    power = np.array([[1.0] * 6, [1.0] + [1e-4] * 5])  # six equal paths; one carrying the cell
+    valid = power > 0
+    m = path_moments(power, np.full((2, 6), 1e-6), valid, valid & False, np.zeros((2, 6, 4)), np.zeros(2))
+    np.testing.assert_array_equal(layers_from_moments(m, 1, 5)["enough_hits"], [True, True])
+    masked = layers_from_moments(m, 1, 5, min_effective_count_for_power=2.0)
+    np.testing.assert_array_equal(masked["enough_hits"], [True, False])
+    assert np.isfinite(masked["path_gain_db"][0]) and np.isnan(masked["path_gain_db"][1])
+    np.testing.assert_allclose(masked["effective_count"], [6.0, 1.0 / (1 + 5e-8) * (1 + 5e-4) ** 2], rtol=1e-9)
+    om = op.OnePassMoments(**{f.name: getattr(m, f.name) for f in fields(CellMoments)}, min_count_for_power=5,
+                           min_effective_count_for_power=2.0, masked=np.zeros(2, bool))
+    assert op.undersampled_fraction(om) == 0.5
+    om.min_effective_count_for_power = 1.0
+    assert op.undersampled_fraction(om) == 0.0
+
+
 def test_empty_batches_and_rays_that_reach_nothing(free_space):
     x, y = _axes(0.0, 4, 0.0, 4, 1.0)
     # every ray of free space leaves the scene after its first segment: the wavefront empties

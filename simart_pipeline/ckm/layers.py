@@ -141,6 +141,7 @@ def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, t
             max_undersampled_fraction=cfg.ckm.max_undersampled_fraction, max_depth=cfg.ray_tracing.max_depth,
             codebook=weights, tx_ant_positions_m=tx_ant_positions_m,
             min_hits_for_spread=cfg.ckm.min_hits_for_spread, min_hits_for_power=cfg.ckm.min_hits_for_power,
+            min_effective_hits_for_power=cfg.ckm.min_effective_hits_for_power,
             cell_size_m=cfg.ckm.cell_size_m,
             indoor=grid.inside_building | grid.outside_region[None], solids=solids,
             # as the reference mode's receiver: its polarisation, not the whole field
@@ -194,7 +195,8 @@ def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_
             v[:, ~traced] = np.inf if f == "min_delay_s" else 0
     fast = cfg.ckm.mode == "fast"
     layers = mom.layers_from_moments(m, cfg.ckm.min_hits_for_spread if fast else 1,
-                                     cfg.ckm.min_hits_for_power if fast else 1)
+                                     cfg.ckm.min_hits_for_power if fast else 1,
+                                     cfg.ckm.min_effective_hits_for_power if fast else 1.0)
     # Link layers and the coherent gain follow the power layers: none where too few rays arrived.
     has = layers["enough_hits"]
     layers["path_gain_coherent_db"] = np.where(has, power_db(coherent), np.nan)

@@ -16,6 +16,10 @@ Definitions (p: the power gain of a path or of a ray tube deposit, element to el
   3GPP TR 38.901 Annex A.1, ``sqrt(-2 ln R)`` with ``R = |sum p exp(j x)| / G``, for the azimuth
   and the zenith of arrival (ASA, ZSA) and of departure (ASD, ZSD), in degrees.
 - LoS power fraction ``sum over line-of-sight contributions p / G``; LoS flag: fraction > 0.5.
+- effective count ``(sum p)^2 / sum p^2`` (Kish): the number of equal contributions that would
+  give the same spread of weights; 1 when one path or ray tube carries the cell's gain, the hit
+  count when all carry the same. In fast mode a cell near 1 holds a Monte-Carlo value that one
+  ray decided (docs/ckm-one-pass.md, heavy tails).
 - beam gain of beam b: ``sum p |w_b^T v(u_dep)|^2`` (incoherent over paths: no inter-path phase),
   ``w_b`` the unit-norm precoder as the codebook stores it (no conjugation, as ``link.beams``) and
   ``v`` the transmit array response.
@@ -52,6 +56,7 @@ class CellMoments:
     p_cos: np.ndarray          # [S, 4] sum p cos(angle), angles in ANGLES order
     p_sin: np.ndarray          # [S, 4] sum p sin(angle)
     beam_power: np.ndarray | None = None  # [S, num_beams]
+    power_sq: np.ndarray | None = None    # sum p^2 (for the effective number of contributions)
 
     @classmethod
     def zeros(cls, shape: tuple[int, ...], num_beams: int | None = None) -> "CellMoments":
@@ -59,7 +64,8 @@ class CellMoments:
         return cls(power=z.copy(), los_power=z.copy(), count=np.zeros(shape, np.int64),
                    min_delay_s=np.full(shape, np.inf), tau0_s=z.copy(), p_excess_delay_s=z.copy(),
                    p_excess_delay2_s2=z.copy(), p_cos=np.zeros(shape + (4,)), p_sin=np.zeros(shape + (4,)),
-                   beam_power=None if num_beams is None else np.zeros(shape + (num_beams,)))
+                   beam_power=None if num_beams is None else np.zeros(shape + (num_beams,)),
+                   power_sq=z.copy())
 
     def merge(self, other: "CellMoments") -> "CellMoments":
         """Sums of two disjoint sets of contributions to the same cells (e.g. two ray batches)."""
@@ -96,23 +102,32 @@ def path_moments(power: np.ndarray, delay_s: np.ndarray, valid: np.ndarray, los:
         tau0_s=np.asarray(tau0_s, np.float64), p_excess_delay_s=(p * dtau).sum(-1),
         p_excess_delay2_s2=(p * dtau**2).sum(-1),
         p_cos=(p[..., None] * np.cos(ang)).sum(-2), p_sin=(p[..., None] * np.sin(ang)).sum(-2),
-        beam_power=None if beam_power is None else (np.where(valid[..., None], beam_power, 0.0)).sum(-2))
+        beam_power=None if beam_power is None else (np.where(valid[..., None], beam_power, 0.0)).sum(-2),
+        power_sq=(p * p).sum(-1))
 
 
 def layers_from_moments(m: CellMoments, min_count_for_spread: int = 1,
-                        min_count_for_power: int = 1) -> dict[str, np.ndarray]:
+                        min_count_for_power: int = 1, min_effective_count_for_power: float = 1.0
+                        ) -> dict[str, np.ndarray]:
     """Layer arrays (grid shape ``S``) from moments; NaN where a layer has no value.
 
     ``has_path``: anything arrived. ``enough_hits``: something arrived and ``count`` reaches
     ``min_count_for_power``; path gain, ToA, mean delay, LoS and beams are NaN (LoS False, best
     beam -1) elsewhere: a cell reached by a ray or two holds a gain that can be tens of dB off (the
-    fast solver's guard; 1 in reference mode, where each count is an exact path). Spreads and mean
-    angles also need ``min_count_for_spread``.
+    fast solver's guard; 1 in reference mode, where each count is an exact path). With
+    ``min_effective_count_for_power`` above 1, a cell whose ``effective_count`` (Kish) stays below
+    it is masked the same way: many hits, but one ray carries the gain. Spreads and mean angles
+    also need ``min_count_for_spread``.
     """
     has = m.power > 0
     g = np.where(has, m.power, 1.0)
     enough = has & (m.count >= min_count_for_power)
     out: dict[str, np.ndarray] = {"has_path": has, "enough_hits": enough, "count": m.count}
+    if m.power_sq is not None:  # Kish's effective sample size of the cell's sum
+        out["effective_count"] = np.where(has, m.power**2 / np.where(m.power_sq > 0, m.power_sq, 1.0), np.nan)
+        if min_effective_count_for_power > 1.0:
+            enough &= out["effective_count"] >= min_effective_count_for_power
+            out["enough_hits"] = enough
     out["path_gain_db"] = np.where(enough, power_db(m.power), np.nan)
     out["path_loss_db"] = -out["path_gain_db"]
     out["los_power_fraction"] = np.where(enough, m.los_power / g, np.nan)
@@ -144,6 +159,9 @@ LAYER_ATTRS: dict[str, dict[str, str]] = {
     "enough_hits": dict(long_name="something arrived and the cell's count reaches ckm.min_hits_for_power "
                         "(fast mode; reference mode: has_path): gain, ToA, LoS and beam layers hold values"),
     "count": dict(units="1", long_name="number of paths (reference mode) or ray hits (fast mode)"),
+    "effective_count": dict(units="1", long_name="effective number of contributions (sum p)^2 / sum p^2 (Kish): "
+                            "1 when one path (reference) or one ray (fast) carries the cell's gain",
+                            nan_means="cell masked (inside a building or outside the region), or nothing reached it"),
     "path_gain_db": dict(units="dB", long_name="path gain, incoherent sum over paths, element to element"),
     "path_loss_db": dict(units="dB", long_name="path loss (= -path gain)"),
     "los_power_fraction": dict(units="1", long_name="fraction of the path gain carried by line of sight"),

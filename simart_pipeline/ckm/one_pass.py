@@ -86,6 +86,7 @@ class OnePassMoments(CellMoments):
 
     min_count_for_spread: int = 1
     min_count_for_power: int = 1
+    min_effective_count_for_power: float = 1.0  # Kish effective count (layers_from_moments)
     outdoor_fraction: np.ndarray | None = None
     masked: np.ndarray | None = None  # [num_heights, ny, nx] bool: indoor or too little outdoor area
     num_rays: int = 0                 # rays of the pass (0: a merge of passes)
@@ -93,7 +94,8 @@ class OnePassMoments(CellMoments):
     def layers(self) -> dict[str, np.ndarray]:
         """:func:`layers_from_moments` with this run's ``min_count_for_spread`` and
         ``min_count_for_power`` (the pipeline's ckm/layers.py applies the same config values)."""
-        return layers_from_moments(self, self.min_count_for_spread, self.min_count_for_power)
+        return layers_from_moments(self, self.min_count_for_spread, self.min_count_for_power,
+                                   self.min_effective_count_for_power)
 
     def merge(self, other: "CellMoments") -> "OnePassMoments":
         """Sums of two disjoint sets of rays over the same grid (e.g. two solver runs)."""
@@ -103,6 +105,7 @@ class OnePassMoments(CellMoments):
         return OnePassMoments(**{k: getattr(merged, k) for k in base}, num_rays=0,
                               min_count_for_spread=self.min_count_for_spread,
                               min_count_for_power=self.min_count_for_power,
+                              min_effective_count_for_power=self.min_effective_count_for_power,
                               outdoor_fraction=self.outdoor_fraction, masked=self.masked)
 
 
@@ -126,6 +129,7 @@ class _Accumulator:
         cell = dep["cell"].astype(np.int64)
         p = dep["power"].astype(np.float64)
         m.power += np.bincount(cell, p, n)
+        m.power_sq += np.bincount(cell, p * p, n)
         if line_of_sight:
             m.los_power += np.bincount(cell, p, n)
         m.count += np.bincount(cell, minlength=n)
@@ -172,7 +176,8 @@ class _Accumulator:
             min_delay_s=m.min_delay_s.reshape(s), tau0_s=m.tau0_s.reshape(s),
             p_excess_delay_s=m.p_excess_delay_s.reshape(s), p_excess_delay2_s2=m.p_excess_delay2_s2.reshape(s),
             p_cos=m.p_cos.reshape(s + (4,)), p_sin=m.p_sin.reshape(s + (4,)),
-            beam_power=None if m.beam_power is None else m.beam_power.reshape(s + (-1,)))
+            beam_power=None if m.beam_power is None else m.beam_power.reshape(s + (-1,)),
+            power_sq=m.power_sq.reshape(s))
 
 
 class _InOrderWorker:
@@ -235,7 +240,8 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                      heights_m: np.ndarray, num_rays: int, max_depth: int,
                      codebook: np.ndarray | None = None, tx_ant_positions_m: np.ndarray | None = None,
                      batch_rays: int = DEFAULT_BATCH_RAYS, min_hits_for_spread: int = DEFAULT_MIN_HITS_FOR_SPREAD,
-                     *, min_hits_for_power: int = DEFAULT_MIN_HITS_FOR_POWER, cell_size_m: float | None = None, indoor: np.ndarray | None = None,
+                     *, min_hits_for_power: int = DEFAULT_MIN_HITS_FOR_POWER, min_effective_hits_for_power: float = 1.0,
+                     cell_size_m: float | None = None, indoor: np.ndarray | None = None,
                      min_outdoor_fraction: float = DEFAULT_MIN_OUTDOOR_FRACTION,
                      rx_polarization: str | None = None, los: bool = True, specular_reflection: bool = True,
                      refraction: bool = False, diffraction: bool = False, edge_diffraction: bool = False,
@@ -256,7 +262,9 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         ``tx_array`` positions)
     :param batch_rays: rays traced at once (memory bound; the result does not depend on it)
     :param min_hits_for_spread: hits a cell needs for spreads and mean angles
-        (:meth:`OnePassMoments.layers`); ``min_hits_for_power``: for path gain, ToA, LoS and beams
+        (:meth:`OnePassMoments.layers`); ``min_hits_for_power``: for path gain, ToA, LoS and beams;
+        ``min_effective_hits_for_power``: the effective count (Kish, ``(sum p)^2 / sum p^2``)
+        they also need (1: no such condition)
     :param indoor: optional bool mask, broadcastable to ``[num_heights, ny, nx]``: cells to mask
     :param min_outdoor_fraction: cells with less of their area outside buildings
         (:func:`outdoor_fraction`) are masked; the others have their sums divided by that share
@@ -336,22 +344,29 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
     for f in ("power", "los_power", "p_excess_delay_s", "p_excess_delay2_s2"):
         setattr(m, f, getattr(m, f) * scale)
     m.p_cos, m.p_sin = m.p_cos * scale[..., None], m.p_sin * scale[..., None]
+    m.power_sq = m.power_sq * scale**2
     if m.beam_power is not None:
         m.beam_power = m.beam_power * scale[..., None]
     m.count = np.where(masked, 0, m.count)
     m.min_delay_s = np.where(masked, np.inf, m.min_delay_s)
     return OnePassMoments(**{f.name: getattr(m, f.name) for f in fields(CellMoments)},
                           min_count_for_spread=int(min_hits_for_spread),
-                          min_count_for_power=int(min_hits_for_power), outdoor_fraction=frac, masked=masked,
+                          min_count_for_power=int(min_hits_for_power),
+                          min_effective_count_for_power=float(min_effective_hits_for_power),
+                          outdoor_fraction=frac, masked=masked,
                           num_rays=int(num_rays))
 
 
 def undersampled_fraction(m: OnePassMoments) -> float:
-    """Share of the reached, unmasked cells whose ray hits stay below ``min_count_for_power``
+    """Share of the reached, unmasked cells whose ray hits stay below ``min_count_for_power`` (or
+    whose effective count stays below ``min_effective_count_for_power``)
     (cells whose layers are masked for too few rays); 0 where nothing is reached."""
     reached = (m.count >= 1) & ~m.masked
     n = int(reached.sum())
-    return 0.0 if n == 0 else float((reached & (m.count < m.min_count_for_power)).sum() / n)
+    few = m.count < m.min_count_for_power
+    if m.min_effective_count_for_power > 1.0 and m.power_sq is not None:
+        few |= m.power**2 < m.min_effective_count_for_power * m.power_sq
+    return 0.0 if n == 0 else float((reached & few).sum() / n)
 
 
 ADAPTIVE_GROWTH = 4  # rays per refinement step: hits per cell grow 4x, their sampling error halves

@@ -45,6 +45,14 @@ class Ckm(_Model):
     # fewer hits than the second moments of the spreads.
     min_hits_for_power: int = Field(5, ge=1, description="fast mode: fewer ray hits mask path gain, "
                                     "ToA, mean delay, LoS and beam layers (layer enough_hits)")
+    # 1: off. A cell's gain is a sum over ray tubes; where one tube carries most of it (a
+    # diffracted ray at grazing incidence, say) the value can be tens of dB off however many hits
+    # the cell has; its effective count (Kish) tells. Masking costs coverage (Munich, diffraction:
+    # 2 masks 9 % of the reached cells, 3 masks 15 %; docs/ckm-one-pass.md, "Session 11").
+    min_effective_hits_for_power: float = Field(
+        1.0, ge=1.0, description="fast mode: cells whose effective number of ray hits "
+        "(sum p)^2 / sum p^2 (layer effective_count) stays below this are masked like cells with too "
+        "few hits, and count as undersampled for adaptive_max_rays; 1: no such mask")
     adaptive_max_rays: int | None = Field(
         None, ge=1_000, description="fast mode: where more than max_undersampled_fraction of the reached "
         "cells have fewer than min_hits_for_power hits, the pass is rerun with 4x the rays while that "
