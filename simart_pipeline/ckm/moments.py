@@ -106,6 +106,17 @@ def path_moments(power: np.ndarray, delay_s: np.ndarray, valid: np.ndarray, los:
         power_sq=(p * p).sum(-1))
 
 
+def too_few_for_power(m: CellMoments, min_count_for_power: int = 1,
+                      min_effective_count_for_power: float = 1.0) -> np.ndarray:
+    """Cells whose gain is not trusted: fewer than ``min_count_for_power`` hits or, with
+    ``min_effective_count_for_power`` above 1, an effective count ``(sum p)^2 / sum p^2`` below
+    it (one ray carries the gain). The one rule of ``enough_hits`` and of the adaptive pass."""
+    few = m.count < min_count_for_power
+    if min_effective_count_for_power > 1.0 and m.power_sq is not None:
+        few = few | (m.power**2 < min_effective_count_for_power * m.power_sq)
+    return few
+
+
 def layers_from_moments(m: CellMoments, min_count_for_spread: int = 1,
                         min_count_for_power: int = 1, min_effective_count_for_power: float = 1.0
                         ) -> dict[str, np.ndarray]:
@@ -121,13 +132,10 @@ def layers_from_moments(m: CellMoments, min_count_for_spread: int = 1,
     """
     has = m.power > 0
     g = np.where(has, m.power, 1.0)
-    enough = has & (m.count >= min_count_for_power)
+    enough = has & ~too_few_for_power(m, min_count_for_power, min_effective_count_for_power)
     out: dict[str, np.ndarray] = {"has_path": has, "enough_hits": enough, "count": m.count}
     if m.power_sq is not None:  # Kish's effective sample size of the cell's sum
         out["effective_count"] = np.where(has, m.power**2 / np.where(m.power_sq > 0, m.power_sq, 1.0), np.nan)
-        if min_effective_count_for_power > 1.0:
-            enough &= out["effective_count"] >= min_effective_count_for_power
-            out["enough_hits"] = enough
     out["path_gain_db"] = np.where(enough, power_db(m.power), np.nan)
     out["path_loss_db"] = -out["path_gain_db"]
     out["los_power_fraction"] = np.where(enough, m.los_power / g, np.nan)

@@ -60,7 +60,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 import pandas as pd
 
-from simart_pipeline.ckm.moments import CellMoments, layers_from_moments
+from simart_pipeline.ckm.moments import CellMoments, layers_from_moments, too_few_for_power
 from simart_pipeline.ckm.outdoor import outdoor_fraction
 from simart_pipeline.ckm.shoot_bounce import (DIRECTION_QUANTUM, Q_BITS, Q_OFFSET, Grid, Tracer,
                                               grid_from_centres)
@@ -363,9 +363,7 @@ def undersampled_fraction(m: OnePassMoments) -> float:
     (cells whose layers are masked for too few rays); 0 where nothing is reached."""
     reached = (m.count >= 1) & ~m.masked
     n = int(reached.sum())
-    few = m.count < m.min_count_for_power
-    if m.min_effective_count_for_power > 1.0 and m.power_sq is not None:
-        few |= m.power**2 < m.min_effective_count_for_power * m.power_sq
+    few = too_few_for_power(m, m.min_count_for_power, m.min_effective_count_for_power)
     return 0.0 if n == 0 else float((reached & few).sum() / n)
 
 

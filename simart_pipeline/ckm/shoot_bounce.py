@@ -533,7 +533,7 @@ class Tracer:
         if depth == 0:
             self.lit_faces.append(_unique_keys(dr, face, hit))
             return face, hit
-        if self.lit_pairs is not None and not self.sampled and prev is not None:
+        if self.lit_pairs is not None and prev is not None:  # None: sampled interactions
             # _reflect keeps the hit lanes in order: the reflected ray j is lattice ray compress(hit)[j]
             first = dr.gather(mi.UInt32, prev[0], dr.compress(prev[1]))
             self.lit_pairs.append(_unique_keys(dr, (mi.UInt64(first) << 32) | mi.UInt64(face), hit))
@@ -564,13 +564,7 @@ class Tracer:
             e_re=spec * (a_r * e_s + b_r * e_pr), e_im=spec * (a_i * e_s + b_i * e_pr),
             length=st["length"] + t,
             **{k: st[k] - 2.0 * dr.dot(n, st[k]) * n for k in ("m0", "m1", "m2")})
-        dr.eval(*new.values(), keep)
-        idx = dr.compress(keep)
-        if dr.width(idx) == 0:
-            return None
-        out = {k: dr.gather(type(v), v, idx) for k, v in new.items()}
-        dr.eval(*out.values())
-        return out
+        return _compact(dr, new, keep)
 
     def _uniform(self, idx, depth: int, purpose: int):
         """Uniform float in [0, 1) (24 bits) from the ray's lattice index, the depth and a purpose."""
@@ -689,13 +683,7 @@ class Tracer:
             anchor = dr.select(diff, length, anchor)
         new = dict(o=new_o, d=new_d, e_re=new_re, e_im=new_im, length=length, m0=m[0], m1=m[1], m2=m[2],
                    idx=st["idx"], anchor=anchor)
-        dr.eval(*new.values(), alive)
-        idx = dr.compress(alive)
-        if dr.width(idx) == 0:
-            return None
-        out = {k: dr.gather(type(v), v, idx) for k, v in new.items()}
-        dr.eval(*out.values())
-        return out
+        return _compact(dr, new, alive)
 
     def trace(self, start: int, stop: int, sink) -> None:
         """Trace lattice rays ``start..stop-1``; ``sink(deposits, line_of_sight)`` per crossing set."""
@@ -740,6 +728,18 @@ class Tracer:
                 st = self._reflect(st, t_hit, ids, prim, hit)
             if st is None:
                 break
+
+
+def _compact(dr, state: dict, active) -> dict | None:
+    """The ray state's ``active`` lanes only, evaluated (None when none is left): the rays that
+    go on after an interaction."""
+    dr.eval(*state.values(), active)
+    idx = dr.compress(active)
+    if dr.width(idx) == 0:
+        return None
+    out = {k: dr.gather(type(v), v, idx) for k, v in state.items()}
+    dr.eval(*out.values())
+    return out
 
 
 def _unique_keys(dr, key, active) -> np.ndarray:
