@@ -143,13 +143,15 @@ SWEEP_SETS = {"los_specular": tuple(SCENES), "diffraction": ("street_canyon",)}
 # per receiver (0.3-0.5 s each, 2 cores): the "all" set's sample is the small one.
 COMPARE_CELLS = {"los_specular": (40, 600), "diffraction": (12, 200), "all": (12, 40)}
 # The reference's own convergence where diffraction is on: PathSolver finds a wedge only where its
-# samples hit it, and at 1e5 samples it misses first-order diffracted paths that 1e6 find (urban
-# scene: cells 30-50 dB below the one-pass, which 1e6 samples bring to it). The centres of the cells
-# with the largest gain errors are traced again at REFERENCE_CHECK_SAMPLES (not for "all": with
-# diffuse reflection 1e6 samples cost 20 s per receiver).
+# samples hit it, and at 1e5 samples it misses first-order diffracted paths that 1e6 and 1e7 find
+# (urban scene: cells 30-50 dB below the one-pass, which 1e6 samples bring to it; Munich, 200 cell
+# centres: 1e5 against 1e7 samples p95 16 dB, 1e6 against 1e7 p95 6 dB). A whole 1e7-sample
+# reference costs 4.9 s per receiver (9 points x 200 cells: 2.5 h): the centres of the cells with
+# the largest gain errors are traced again at REFERENCE_CHECK_SAMPLES (not for "all": with diffuse
+# reflection 1e6 samples cost 20 s per receiver).
 REFERENCE_CHECK_SETS = ("diffraction",)
 REFERENCE_CHECK_CELLS = (3, 10)  # (quick, full)
-REFERENCE_CHECK_SAMPLES = 10**6
+REFERENCE_CHECK_SAMPLES = 10**7
 LOOP_CELLS = (6, 30)          # single PathSolver calls timed per set, at most (quick, full) ...
 LOOP_BUDGET_S = (10.0, 20.0)  # ... or until this many seconds have passed (at least MIN_LOOP_CALLS)
 MIN_LOOP_CALLS = 3

@@ -152,6 +152,62 @@ def test_free_space_gain_is_friis_with_the_element_pattern_toa_is_distance_sprea
         assert (L["los_power_fraction"][k] == 1).all() and L["los"][k].all()
 
 
+def _friis_cell_mean(tx, x, y, h, cell):
+    p = _sub_points(x, y, cell, h)
+    d = np.linalg.norm(p - tx, axis=-1)
+    return ((LAM / (4 * np.pi * d)) ** 2).mean(-1)
+
+
+def test_footprints_spread_a_sparse_ray_set_over_the_cells_it_covers_and_keep_its_power(tmp_path):
+    """Few rays over a fine grid, reflected by a metal ground (|R| = 1 to 1e-4; line of sight off):
+    dropped into single cells they leave holes and spikes; spread over their tubes' footprints (a
+    tent ``sqrt(A)`` across the ray and ``sqrt(A) / |cos theta_z|`` along it, ``A = 4 pi / N L^2``
+    the tube's cross-section at unfolded length ``L``) they give the image source's Friis cell
+    mean within a dB everywhere, and the power they carry over the grid stays the same. Delays
+    stay those of each cell's own centre (the image-source correction is made per covered cell)."""
+    xml = _write_scene(tmp_path / "metal", {"g": (_ground(), "metal")}, 0.2)
+    radio = RadioScene.from_config(xml, _cfg(pattern="iso"))
+    tx = np.array([0.3, -0.2, 10.0])
+    image = tx * [1, 1, -1]
+    x, y = _axes(-30.0, 60, -30.0, 60, 1.0)
+    n = 4_000  # at 20 m from the foot a footprint of about 3 x 3 cells
+    kw = dict(los=False, rx_polarization=None, min_hits_for_power=1)
+    point = op.one_pass_moments(radio, tx, np.zeros(3), x, y, [1.5], n, 1, max_footprint_cells=1, **kw)
+    spread = op.one_pass_moments(radio, tx, np.zeros(3), x, y, [1.5], n, 1, max_footprint_cells=8, **kw)
+    ref = _friis_cell_mean(image, x, y, 1.5, 1.0)
+    X, Y = np.meshgrid(x - tx[0], y - tx[1])
+    far = np.hypot(X, Y) > 15.0  # footprints wider than a cell
+    err = np.abs(10 * np.log10(spread.power[0][far] / ref[far]))
+    assert (point.count[0][far] == 0).mean() > 0.5  # holes between the point deposits
+    assert (spread.count[0][far] >= 1).all()
+    assert np.percentile(err, 50) < 0.4 and err.max() < 1.0, np.percentile(err, [50, 100])
+    # the power on the grid: equal up to what footprints carry across its border
+    assert abs(spread.power.sum() / point.power.sum() - 1) < 0.01
+    assert abs(spread.power.sum() / ref.sum() - 1) < 0.01
+    L = spread.layers()
+    c = np.stack([*np.meshgrid(x, y), np.full((60, 60), 1.5)], -1)
+    np.testing.assert_allclose(L["toa_s"][0][far], (np.linalg.norm(c - image, axis=-1) / const.c)[far],
+                               rtol=0, atol=1e-12)  # float32 image sources: 0.3 mm
+    # the point deposits are the estimator below one cell: spreading leaves the near field alone
+    near = np.hypot(X, Y) < 5.0
+    np.testing.assert_array_equal(spread.power[0][near], point.power[0][near])
+    # the footprint itself: sqrt(4 pi / N) L across the ray, that over |cos theta_z| along it
+    import mitsuba as mi
+
+    tracer = sb.Tracer(radio, tx, np.eye(3), sb.grid_from_centres(x, y, [1.5]), n, 1, False, None,
+                       max_footprint_cells=8)
+    st = tracer.launch(0, n)
+    d = np.stack([getattr(st["d"], k).numpy() for k in "xyz"], -1)
+    t_h = (1.5 - tx[2]) / d[:, 2]
+    fp = tracer._footprint(st, mi.Float(t_h.astype(np.float32)))
+    a_u, a_v, hx = (fp[k].numpy() for k in ("a_u", "a_v", "hx"))
+    side = np.sqrt(4 * np.pi / n) * t_h
+    wide = (hx > 0) & (side / np.abs(d[:, 2]) < 8.0) & (side > 1.0)  # spread, below the cap
+    assert wide.sum() > 100
+    np.testing.assert_allclose(a_v[wide], side[wide], rtol=1e-5)
+    np.testing.assert_allclose(a_u[wide], (side / np.abs(d[:, 2]))[wide], rtol=1e-5)
+
+
 def test_beam_gains_follow_the_array_factor_of_the_dft_codebook(tmp_path):
     # a ground plane: each cell has a line-of-sight path and a ground reflection, whose beam gains
     # follow the array factor of their own departure directions
@@ -502,29 +558,30 @@ def test_adaptive_rule_raises_the_rays_until_few_cells_lack_hits(tmp_path):
     """ckm.adaptive_max_rays: from a ray count that leaves many reached cells below
     min_hits_for_power, the pass is rerun with 4x the rays until at most the target share is left
     (or the cap stops it); the result is exactly the single pass at the final count, and its share
-    of under-sampled cells is lower than the first pass's."""
+    of under-sampled cells is lower than the first pass's. Point deposits: footprints spread over
+    several cells leave few cells under-sampled at any ray count (the next test)."""
     xml = _write_scene(tmp_path / "gw", {"ground": (_ground(), "medium_dry_ground"),
                                          "wall": (_wall(12.0), "brick")}, 0.3)
     radio = RadioScene.from_config(xml, _cfg(pattern="tr38901"))
     x, y = _axes(-20.0, 20, -20.0, 20, 2.0)
     args = (radio, np.array([0.0, 1.0, 8.0]), np.array([0.2, 0.1, 0.0]), x, y, np.array([1.5]))
-    first = op.one_pass_moments(*args, num_rays=2_000, max_depth=2)
+    first = op.one_pass_moments(*args, num_rays=2_000, max_depth=2, max_footprint_cells=1)
     share0 = op.undersampled_fraction(first)
     assert share0 > 0.5
     m = op.adaptive_one_pass_moments(*args, num_rays=2_000, max_rays=2_000 * 4**4, max_undersampled_fraction=0.05,
-                                     max_depth=2)
+                                     max_depth=2, max_footprint_cells=1)
     assert m.num_rays in [2_000 * 4**k for k in range(1, 5)]
     assert op.undersampled_fraction(m) <= 0.05 or m.num_rays == 2_000 * 4**4
     assert op.undersampled_fraction(m) < share0
     if m.num_rays > 2_000 * 4:  # the step before was still above the target: it did not stop early
-        before = op.one_pass_moments(*args, num_rays=m.num_rays // 4, max_depth=2)
+        before = op.one_pass_moments(*args, num_rays=m.num_rays // 4, max_depth=2, max_footprint_cells=1)
         assert op.undersampled_fraction(before) > 0.05
-    direct = op.one_pass_moments(*args, num_rays=m.num_rays, max_depth=2)
+    direct = op.one_pass_moments(*args, num_rays=m.num_rays, max_depth=2, max_footprint_cells=1)
     for f in fields(CellMoments):
         np.testing.assert_array_equal(getattr(m, f.name), getattr(direct, f.name), err_msg=f.name)
     # no cap: one pass, whatever the share
     once = op.adaptive_one_pass_moments(*args, num_rays=2_000, max_rays=None, max_undersampled_fraction=0.0,
-                                        max_depth=2)
+                                        max_depth=2, max_footprint_cells=1)
     assert once.num_rays == 2_000 and np.array_equal(once.count, first.count)
 
 

@@ -37,7 +37,10 @@ Per transmitter, after Sionna RT 2.2 (``RadioMapSolver._shoot_and_bounce`` and
    field scaled so that the tracer's ``4 pi / num_rays`` becomes that flux: it deposits
    ``|E|^2 weight / |cos theta_z|`` on every plane it crosses (RadioMapSolver's estimator for
    diffracted rays on the first crossing) and reflects specularly up to ``max_depth - 1`` more
-   times.
+   times. It carries its tube, ``tube_c = area(s) / (s (s + s'))`` and ``tube_l0 = s'``, so that
+   the tracer knows its cross-section ``tube_c (L - s') L`` at any path length ``L`` and spreads
+   a crossing over the footprint where that is larger than a cell
+   (:mod:`simart_pipeline.ckm.one_pass`).
 
 Delays and directions of a deposit are those of the path through the sampled point to the cell
 centre ``c``: ``tau = (|q - tx| + |c - q|) / c0``, arrival from ``q``, departure towards ``q``.
@@ -66,8 +69,11 @@ MAX_REFERENCE_DISTANCE_M = 1e4  # a diffracted ray meeting nothing: its field is
 # Samples per lattice ray on the direct wedges, and the (image, wedge) pairs' share of those. Before
 # the pilot, 4 per ray on Munich gave a value in 96.6 % of the sampled outdoor cells PathSolver
 # reaches (benchmarks.ckm_solver, 1e7 rays, 2 m cells); with the pilot and the downward arc, 2 per
-# ray give 99.2 % (street canyon 100 %, urban 100 %) in less time (docs/ckm-one-pass.md).
-DIRECT_SAMPLES_PER_RAY = 2
+# ray gave 99.2 % (street canyon 100 %, urban 100 %). With deposits spread over their footprints
+# (one_pass, max_footprint_cells) 1 per ray is closer to a 32x-sample map than 2 were without
+# (Munich: gain p95 3.9 against 8.0 dB) in the same time, and 30 % faster on the street canyon
+# (docs/ckm-one-pass.md, "Session 12").
+DIRECT_SAMPLES_PER_RAY = 1
 REFLECTED_SAMPLE_SHARE = 0.125
 PILOT_POINTS = 32  # lattice points per (source, wedge) pair that find where it can diffract (pilot)
 PILOT_BATCH = 1 << 22  # pilot points evaluated at once
@@ -468,6 +474,8 @@ class DiffractionSampler:
         scale = dr.sqrt(dr.maximum(area, 0.0) * (self.tracer.num_rays / (4.0 * np.pi)))
         e_re, e_im = jones_to_world(e_out, kko)
         state = dict(o=o, d=kko, e_re=scale * e_re, e_im=scale * e_im, length=sp,
+                     # the ray tube: area c (L - s') L at path length L (diffracted_bundle_area)
+                     tube_c=area / (sr * (sr + sp)), tube_l0=sp,
                      # departure is fixed whatever the arrival: rank-one "mirror" columns
                      # (dep_k ko), so that the deposit's normalised M d_c is that direction
                      **{f"m{k}": dd[k] * kko for k in range(3)})

@@ -29,6 +29,22 @@ What a deposit adds (``p``: power gain, ``tau``: delay):
   conjugation): once per cell for line of sight (all its deposits leave towards the centre), once
   per group of a cell's deposits sharing a quantised departure direction for reflections.
 
+Where a ray stands for more than a cell (far from an edge a diffracted sample does, and a
+reflected ray at grazing incidence), a deposit into the one cell it crosses is a spike there and a
+hole beside it: the estimate is unbiased but heavy-tailed (a few rays carry a cell). Such a
+crossing is spread over the cells its ray tube's footprint covers instead: the tube's
+cross-section ``A`` at that path length (``4 pi / num_rays L^2`` for a lattice ray, ``L`` the
+unfolded length; a diffracted ray's own, :mod:`simart_pipeline.ckm.diffraction`) gives a tent
+kernel ``sqrt(A)`` wide across the ray and ``sqrt(A) / |cos theta_z|`` along it, evaluated at
+each covered cell's centre and normalised to the crossing's power (what falls off the grid is
+lost, as for a point); each covered cell gets its own centre-corrected delay and directions and
+counts the ray as one hit. Line-of-sight crossings stay points (they end at sharp shadow edges,
+which a footprint would blur; at useful ray counts their tubes are narrow). Munich with
+diffraction, 1e7 rays: against a map of 32x the diffraction samples, gain p95 8.0 -> 3.0 dB and
+p99 25 -> 13 dB, 5 % more cells with a value, for 25 % more time (docs/ckm-one-pass.md). It is
+a smoothing at the scale of the ray spacing (a kernel density estimate): structure finer than
+that, which the rays cannot resolve either, is blurred.
+
 Cells are masked (zero moments) where the caller says ``indoor`` or where less than
 ``min_outdoor_fraction`` of their area is outside buildings; the others have their sums divided by
 that share. Spreads and mean angles need ``min_hits_for_spread`` ray hits
@@ -75,6 +91,7 @@ DEFAULT_BATCH_RAYS = 1 << 20  # about 0.5 GB of ray state on the LLVM backend
 DEFAULT_MIN_HITS_FOR_SPREAD = 10
 DEFAULT_MIN_HITS_FOR_POWER = 5  # config.Ckm.min_hits_for_power's default; the reasoning is there
 DEFAULT_MIN_OUTDOOR_FRACTION = 0.5
+DEFAULT_MAX_FOOTPRINT_CELLS = 8.0
 
 
 @dataclass
@@ -246,6 +263,7 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                      rx_polarization: str | None = None, los: bool = True, specular_reflection: bool = True,
                      refraction: bool = False, diffraction: bool = False, edge_diffraction: bool = False,
                      diffuse_reflection: bool = False, diffraction_samples: int | None = None,
+                     max_footprint_cells: float = DEFAULT_MAX_FOOTPRINT_CELLS,
                      solids: Solids | None = None) -> OnePassMoments:
     """Per-cell power moments of one transmitter over a grid, from one shoot-and-bounce pass.
 
@@ -278,6 +296,10 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         draws one interaction per hit in proportion to the energies of the enabled ones, weighted
         by ``1 / sqrt(probability)`` (unbiased; random numbers hashed from the lattice index and
         the depth, so still deterministic and batch-independent): :mod:`.shoot_bounce`.
+    :param max_footprint_cells: a crossing (other than line of sight) whose ray tube's footprint on
+        the plane is larger than a cell spreads its deposit over the cells that footprint covers
+        (a tent kernel normalised to the crossing's power, at most this many cells on a side, see
+        the module docstring); 1: every crossing into the one cell it crosses
     :param diffraction, edge_diffraction: first-order wedge (and free-edge) diffraction,
         :mod:`simart_pipeline.ckm.diffraction`, with ``diffraction_samples`` points on the lit
         wedges (default ``DIRECT_SAMPLES_PER_RAY * num_rays``; an eighth of that again on the
@@ -311,7 +333,7 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
     depth = int(max_depth) if (specular_reflection or refraction or diffuse_reflection) else 0
     tracer = Tracer(radio, tx_position_m, rot, grid, int(num_rays), depth, los, rx_polarization,
                      with_beams=codebook is not None, specular=specular_reflection, refraction=refraction,
-                     diffuse=diffuse_reflection)
+                     diffuse=diffuse_reflection, max_footprint_cells=max_footprint_cells)
     acc = _Accumulator(grid, tx_position_m, codebook, ant, rot, radio.wavelength_m)
     with_diffraction = diffraction and int(max_depth) > 0
     reflections_before = 1 if specular_reflection and depth >= 2 else 0

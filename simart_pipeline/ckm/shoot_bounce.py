@@ -60,6 +60,7 @@ _SPAWN_EPSILON = 89.0 * 2.0**-24  # Mitsuba's RayEpsilon for float32
 # Purposes of the per-ray random numbers (hashed with the lattice index and the depth)
 _DRAW_EVENT, _DRAW_DIR1, _DRAW_DIR2, _DRAW_LOBE = range(4)
 _RNG_SEED = 0x2545F491
+_TUBE = ("tube_c", "tube_l0")  # a diffracted ray's own ray tube (Tracer._footprint)
 
 
 @dataclass(frozen=True)
@@ -389,7 +390,8 @@ class Tracer:
 
     def __init__(self, radio, tx_position_m, tx_rotation: np.ndarray, grid: Grid, num_rays: int,
                  max_depth: int, los: bool, rx_polarization: str | None, with_beams: bool = False, *,
-                 specular: bool = True, diffuse: bool = False, refraction: bool = False):
+                 specular: bool = True, diffuse: bool = False, refraction: bool = False,
+                 max_footprint_cells: float = 1.0):
         import drjit as dr
         import mitsuba as mi
 
@@ -434,6 +436,8 @@ class Tracer:
             self.scat = (mi.Float(s_tab.astype(np.float32)), mi.Float(kx_tab.astype(np.float32)),
                          mi.UInt32(pat_tab))
         # p = |E|^2 * solid angle / |cos| * (lambda / 4 pi)^2 / cell area (RadioMapSolver's estimator)
+        self.tube_c = opaque(4 * np.pi / num_rays)  # a lattice ray's tube: 4 pi / N sr
+        self.max_footprint_cells = float(max_footprint_cells)
         self.power_scale = opaque((4 * np.pi / num_rays) * (radio.wavelength_m / (4 * np.pi)) ** 2
                                   / (grid.dx * grid.dy))
 
@@ -463,19 +467,67 @@ class Tracer:
             st.update(idx=dr.arange(mi.UInt32, start, stop), anchor=dr.zeros(mi.Float, n))
         return st
 
-    def _deposits(self, st, t_hit, height, cell_offset) -> dict[str, np.ndarray] | None:
+    def _footprint(self, st, t_h):
+        """The ray tube's footprint on the plane at ``t_h`` along each ray, as the half-widths
+        (m) of a tent kernel along the ray's horizontal direction and across it, and the
+        half-extents (cells) of the box that holds it; zero half-extents where the footprint is
+        smaller than a cell (the crossing stays a point). The tube's cross-section at path length
+        ``L`` is ``c (L - l0) L`` (``c = 4 pi / num_rays``, ``l0 = 0`` for the lattice rays, a cone
+        from the transmitter unfolded through specular reflections; a diffracted ray carries its
+        own ``tube_c``, ``tube_l0``, :mod:`.diffraction`; after a diffuse bounce: not tracked, a
+        point); on the plane it is that square stretched by ``1 / |cos theta_z|`` along the ray."""
+        dr, mi, g = self.dr, self.mi, self.g
+        d = st["d"]
+        length = st["length"] + t_h
+        if "tube_c" in st:
+            c, l0 = st["tube_c"], st["tube_l0"]
+        else:
+            c, l0 = self.tube_c, mi.Float(0.0)
+        if self.sampled:  # diffused since launch (or since the diffraction): no tube
+            c = dr.select(st["anchor"] == l0, c, 0.0)
+        cz = dr.abs(d.z)
+        side = dr.sqrt(dr.maximum(c * (length - l0) * length, 0.0))  # across the ray, m
+        cell = dr.minimum(g["dx"], g["dy"])
+        wide = side * side > g["dx"] * g["dy"] * cz  # the footprint is larger than a cell
+        cap = self.max_footprint_cells * cell
+        a_v = dr.minimum(dr.maximum(side, cell), cap)
+        a_u = dr.minimum(dr.maximum(side / cz, cell), cap)
+        rho = dr.sqrt(dr.maximum(d.x * d.x + d.y * d.y, 0.0))
+        ux = dr.select(rho > 0, d.x / rho, 1.0)
+        uy = dr.select(rho > 0, d.y / rho, 0.0)
+        hx = dr.select(wide, (a_u * dr.abs(ux) + a_v * dr.abs(uy)) / g["dx"], 0.0)
+        hy = dr.select(wide, (a_u * dr.abs(uy) + a_v * dr.abs(ux)) / g["dy"], 0.0)
+        return dict(a_u=a_u, a_v=a_v, ux=ux, uy=uy, hx=hx, hy=hy)
+
+    def _deposits(self, st, t_hit, height, cell_offset, spread: bool = True) -> dict[str, np.ndarray] | None:
         dr, mi, g = self.dr, self.mi, self.g
         o, d = st["o"], st["d"]
         t_h = (height - o.z) / d.z
         cross = (d.z != 0) & (t_h > 0) & (t_h < t_hit)
-        col = dr.floor((o.x + t_h * d.x - g["x_lo"]) / g["dx"])
-        row = dr.floor((o.y + t_h * d.y - g["y_lo"]) / g["dy"])
-        cross &= (col >= 0) & (col < g["nx"]) & (row >= 0) & (row < g["ny"])
+        px = (o.x + t_h * d.x - g["x_lo"]) / g["dx"]  # crossing point, in cells
+        py = (o.y + t_h * d.y - g["y_lo"]) / g["dy"]
+        if spread and self.max_footprint_cells > 1:
+            fp = self._footprint(st, t_h)
+            hx, hy = fp["hx"], fp["hy"]
+        else:
+            fp, hx, hy = None, mi.Float(0.0), mi.Float(0.0)
+        # the crossing's footprint (a point where hx = hy = 0) overlaps the grid
+        cross &= (px + hx >= 0) & (px - hx < g["nx"]) & (py + hy >= 0) & (py - hy < g["ny"])
         idx = dr.compress(cross)
         if dr.width(idx) == 0:
             return None
-        take = {k: dr.gather(type(v), v, idx) for k, v in st.items()}
-        col, row = dr.gather(mi.Float, col, idx), dr.gather(mi.Float, row, idx)
+        px, py = dr.gather(mi.Float, px, idx), dr.gather(mi.Float, py, idx)
+        weight = None
+        if fp is not None:
+            spread = self._spread(px, py, {k: dr.gather(mi.Float, v, idx) for k, v in fp.items()})
+            if spread is None:
+                return None
+            source, col, row, weight = spread
+            if source is not None:
+                idx = dr.gather(mi.UInt32, idx, source)
+        else:
+            col, row = dr.floor(px), dr.floor(py)
+        take = {k: dr.gather(type(v), v, idx) for k, v in st.items()}  # the state of each deposit
         d = take["d"]
         centre = mi.Point3f(g["x_lo"] + (col + 0.5) * g["dx"], g["y_lo"] + (row + 0.5) * g["dy"], height)
         if not self.sampled:
@@ -508,11 +560,55 @@ class Tracer:
             u = theta_hat if self.rx_polarization == "V" else phi_hat
             field2 = dr.square(dr.dot(e_re, u)) + dr.square(dr.dot(e_im, u))
         power = field2 * self.power_scale / dr.abs(d.z)
+        if weight is not None:
+            power *= weight
         cell = cell_offset + mi.UInt32(row) * g["nx_int"] + mi.UInt32(col)
         out = dict(cell=cell, power=power, dist=dist)
         out.update(direction_terms(d_c, d_dep, self.rot, self.with_beams))
         dr.eval(*out.values())
         return {k: v.numpy() for k, v in out.items()}
+
+    def _spread(self, px, py, fp):
+        """The crossings repeated once per grid cell their footprint (:meth:`_footprint`) covers,
+        with a tent kernel's weight at the cell's centre, normalised over the whole box (cells off
+        the grid included, then dropped: a footprint that crosses the grid's border leaves that
+        share outside): (the crossing of each deposit, column, row, weight; the first and last
+        None where every footprint is a point), or None where no covered cell lies on the grid."""
+        dr, mi, g = self.dr, self.mi, self.g
+        wide = fp["hx"] > 0
+        c0 = dr.floor(px - fp["hx"])
+        r0 = dr.floor(py - fp["hy"])
+        ncol = dr.floor(px + fp["hx"]) - c0 + 1.0
+        n = mi.UInt32(ncol * (dr.floor(py + fp["hy"]) - r0 + 1.0))
+        dr.eval(n)
+        n_np = n.numpy().astype(np.int64)
+        if not (n_np > 1).any():
+            return None, c0, r0, None
+        # lane k of the output is cell `local` of crossing `parent` (numpy: a cumulative index)
+        parent_np = np.repeat(np.arange(len(n_np), dtype=np.uint32), n_np)
+        local_np = np.arange(len(parent_np), dtype=np.int64) - np.repeat(np.cumsum(n_np) - n_np, n_np)
+        parent, local = mi.UInt32(parent_np), mi.Float(local_np.astype(np.float32))
+        gat = lambda v: dr.gather(type(v), v, parent)  # noqa: E731
+        nc = gat(ncol)
+        r_off = dr.floor((local + 0.5) / nc)  # float: exact for these small integers, no integer division
+        col, row = gat(c0) + (local - r_off * nc), gat(r0) + r_off
+        # the cell centre relative to the crossing, m, along the ray's horizontal direction and across
+        ex, ey = (col + 0.5 - gat(px)) * g["dx"], (row + 0.5 - gat(py)) * g["dy"]
+        ux, uy = gat(fp["ux"]), gat(fp["uy"])
+        du, dv = ex * ux + ey * uy, ey * ux - ex * uy
+        w = dr.maximum(1.0 - dr.abs(du) / gat(fp["a_u"]), 0.0) * dr.maximum(1.0 - dr.abs(dv) / gat(fp["a_v"]), 0.0)
+        w = dr.select(gat(wide), w, 1.0)
+        dr.eval(w)
+        w_np = w.numpy().astype(np.float64)
+        total = np.bincount(parent_np, w_np, len(n_np))  # in lane order: deterministic
+        w_np = (w_np / total[parent_np]).astype(np.float32)
+        dr.eval(col, row)
+        keep = (col >= 0) & (col < g["nx"]) & (row >= 0) & (row < g["ny"]) & (mi.Float(w_np) > 0)
+        sel = dr.compress(keep)
+        if dr.width(sel) == 0:
+            return None
+        return (dr.gather(mi.UInt32, parent, sel), dr.gather(mi.Float, col, sel), dr.gather(mi.Float, row, sel),
+                dr.gather(mi.Float, mi.Float(w_np), sel))
 
     def collect_lit(self, pairs: bool) -> None:
         """From now on, collect the lattice rays' first hits (global face indices, ``lit_faces``)
@@ -563,7 +659,8 @@ class Tracer:
             o=mi.Point3f(p + offset * n), d=d_r,
             e_re=spec * (a_r * e_s + b_r * e_pr), e_im=spec * (a_i * e_s + b_i * e_pr),
             length=st["length"] + t,
-            **{k: st[k] - 2.0 * dr.dot(n, st[k]) * n for k in ("m0", "m1", "m2")})
+            **{k: st[k] - 2.0 * dr.dot(n, st[k]) * n for k in ("m0", "m1", "m2")},
+            **{k: st[k] for k in _TUBE if k in st})
         return _compact(dr, new, keep)
 
     def _uniform(self, idx, depth: int, purpose: int):
@@ -682,7 +779,7 @@ class Tracer:
             m = [dr.select(diff, dk * ko, mk) for dk, mk in zip(dep, m)]
             anchor = dr.select(diff, length, anchor)
         new = dict(o=new_o, d=new_d, e_re=new_re, e_im=new_im, length=length, m0=m[0], m1=m[1], m2=m[2],
-                   idx=st["idx"], anchor=anchor)
+                   idx=st["idx"], anchor=anchor, **{k: st[k] for k in _TUBE if k in st})
         return _compact(dr, new, alive)
 
     def trace(self, start: int, stop: int, sink) -> None:
@@ -717,7 +814,9 @@ class Tracer:
                 hit_prev = self._record_lit(depth, ids, prim, hit, hit_prev if depth else None)
             if self.los or not line_of_sight:
                 for height, cell_offset in self.heights:
-                    dep = self._deposits(st, t_hit, height, cell_offset)
+                    # line of sight ends at sharp shadow edges, which a footprint would blur
+                    # across; the lattice's own tubes are narrow there at useful ray counts
+                    dep = self._deposits(st, t_hit, height, cell_offset, spread=not line_of_sight)
                     if dep is not None:
                         sink(dep, line_of_sight)
             if depth == max_depth:

@@ -53,6 +53,15 @@ class Ckm(_Model):
         1.0, ge=1.0, description="fast mode: cells whose effective number of ray hits "
         "(sum p)^2 / sum p^2 (layer effective_count) stays below this are masked like cells with too "
         "few hits, and count as undersampled for adaptive_max_rays; 1: no such mask")
+    # 8: far from an edge a diffracted sample stands for many cells (a ray tube's footprint grows
+    # with distance, and at grazing incidence); dropped into one cell it is a spike there and a hole
+    # beside it. Spread over its footprint the map converges several times faster (Munich with
+    # diffraction, docs/ckm-one-pass.md); the cap bounds the cells one crossing touches.
+    max_footprint_cells: float = Field(
+        8.0, ge=1.0, description="fast mode: a ray crossing whose tube footprint on the plane is wider "
+        "than a cell spreads its power over the cells the footprint covers (a square of the footprint's "
+        "area about the crossing, at most this many cells on a side); 1: each crossing into its one cell "
+        "(RadioMapSolver's estimator)")
     adaptive_max_rays: int | None = Field(
         None, ge=1_000, description="fast mode: where more than max_undersampled_fraction of the reached "
         "cells have fewer than min_hits_for_power hits, the pass is rerun with 4x the rays while that "
