@@ -40,8 +40,10 @@ each covered cell's centre and normalised to the crossing's power (what falls of
 lost, as for a point); each covered cell gets its own centre-corrected delay and directions and
 counts the ray as one hit. Line-of-sight crossings stay points (they end at sharp shadow edges,
 which a footprint would blur; at useful ray counts their tubes are narrow). Munich with
-diffraction, 1e7 rays: against a map of 32x the diffraction samples, gain p95 8.0 -> 3.0 dB and
-p99 25 -> 13 dB, 5 % more cells with a value, for 25 % more time (docs/ckm-one-pass.md). It is
+diffraction, 1e7 rays, two diffraction samples per ray: against a map of 32x the diffraction
+samples, gain p95 8.0 -> 3.0 dB and p99 25 -> 13 dB, 5 % more cells with a value, for 25 % more
+time; at one sample per ray (the default since) p95 3.9 dB in the time two took before
+(docs/ckm-one-pass.md). It is
 a smoothing at the scale of the ray spacing (a kernel density estimate): structure finer than
 that, which the rays cannot resolve either, is blurred.
 
