@@ -158,7 +158,7 @@ def _friis_cell_mean(tx, x, y, h, cell):
     return ((LAM / (4 * np.pi * d)) ** 2).mean(-1)
 
 
-def test_footprints_spread_a_sparse_ray_set_over_the_cells_it_covers_and_keep_its_power(tmp_path):
+def test_footprints_spread_a_sparse_ray_set_over_the_cells_it_covers_and_keep_its_power(tmp_path, monkeypatch):
     """Few rays over a fine grid, reflected by a metal ground (|R| = 1 to 1e-4; line of sight off):
     dropped into single cells they leave holes and spikes; spread over their tubes' footprints (a
     tent ``sqrt(A)`` across the ray and ``sqrt(A) / |cos theta_z|`` along it, ``A = 4 pi / N L^2``
@@ -191,6 +191,16 @@ def test_footprints_spread_a_sparse_ray_set_over_the_cells_it_covers_and_keep_it
     # the point deposits are the estimator below one cell: spreading leaves the near field alone
     near = np.hypot(X, Y) < 5.0
     np.testing.assert_array_equal(spread.power[0][near], point.power[0][near])
+    # a cell partly inside a building gets only its outdoor part of a footprint's share: after the
+    # solver's division by that part the density is the open field's (here a band of cells made
+    # half indoor, with no building in the way of the rays)
+    half = np.ones((1, 60, 60))
+    half[0, :, 50:55] = 0.5
+    monkeypatch.setattr(op, "outdoor_fraction", lambda *a, **k: half)
+    banded = op.one_pass_moments(radio, tx, np.zeros(3), x, y, [1.5], n, 1, max_footprint_cells=8, **kw)
+    band = far & (half[0] == 0.5)
+    assert band.sum() > 100
+    np.testing.assert_allclose(banded.power[0][band], spread.power[0][band], rtol=1e-5)
     # the footprint itself: sqrt(4 pi / N) L across the ray, that over |cos theta_z| along it
     import mitsuba as mi
 

@@ -38,7 +38,9 @@ unfolded length; a diffracted ray's own, :mod:`simart_pipeline.ckm.diffraction`)
 kernel ``sqrt(A)`` wide across the ray and ``sqrt(A) / |cos theta_z|`` along it, evaluated at
 each covered cell's centre and normalised to the crossing's power (what falls off the grid is
 lost, as for a point); each covered cell gets its own centre-corrected delay and directions and
-counts the ray as one hit. Line-of-sight crossings stay points (they end at sharp shadow edges,
+counts the ray as one hit, and of its share only its part outside buildings (the part inside
+never reaches the plane; after the division by the outdoor part below the density is the
+unobstructed one). Line-of-sight crossings stay points (they end at sharp shadow edges,
 which a footprint would blur; at useful ray counts their tubes are narrow). Munich with
 diffraction, 1e7 rays, two diffraction samples per ray: against a map of 32x the diffraction
 samples, gain p95 8.0 -> 3.0 dB and p99 25 -> 13 dB, 5 % more cells with a value, for 25 % more
@@ -333,9 +335,11 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
     else:
         ant = None
     depth = int(max_depth) if (specular_reflection or refraction or diffuse_reflection) else 0
+    frac = outdoor_fraction(radio, x_m, y_m, grid.heights, cell_size_m=cell_size_m, solids=solids)
     tracer = Tracer(radio, tx_position_m, rot, grid, int(num_rays), depth, los, rx_polarization,
                      with_beams=codebook is not None, specular=specular_reflection, refraction=refraction,
-                     diffuse=diffuse_reflection, max_footprint_cells=max_footprint_cells)
+                     diffuse=diffuse_reflection, max_footprint_cells=max_footprint_cells,
+                     outdoor_fraction=frac)
     acc = _Accumulator(grid, tx_position_m, codebook, ant, rot, radio.wavelength_m)
     with_diffraction = diffraction and int(max_depth) > 0
     reflections_before = 1 if specular_reflection and depth >= 2 else 0
@@ -356,7 +360,6 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
             wedges.trace(int(DIRECT_SAMPLES_PER_RAY * num_rays if diffraction_samples is None else diffraction_samples),
                          SAMPLES_PER_BATCH_RAY * int(batch_rays), sink)
     m = acc.moments()
-    frac = outdoor_fraction(radio, x_m, y_m, grid.heights, cell_size_m=cell_size_m, solids=solids)
     masked = frac < min_outdoor_fraction
     if indoor is not None:
         try:

@@ -391,7 +391,7 @@ class Tracer:
     def __init__(self, radio, tx_position_m, tx_rotation: np.ndarray, grid: Grid, num_rays: int,
                  max_depth: int, los: bool, rx_polarization: str | None, with_beams: bool = False, *,
                  specular: bool = True, diffuse: bool = False, refraction: bool = False,
-                 max_footprint_cells: float = 1.0):
+                 max_footprint_cells: float = 1.0, outdoor_fraction: np.ndarray | None = None):
         import drjit as dr
         import mitsuba as mi
 
@@ -438,6 +438,10 @@ class Tracer:
         # p = |E|^2 * solid angle / |cos| * (lambda / 4 pi)^2 / cell area (RadioMapSolver's estimator)
         self.tube_c = opaque(4 * np.pi / num_rays)  # a lattice ray's tube: 4 pi / N sr
         self.max_footprint_cells = float(max_footprint_cells)
+        # a spread crossing's share of a cell is the part of the cell outside buildings (the
+        # solver divides each cell's sums by that part): [num_heights, ny, nx], None: all outside
+        self.outdoor = None if outdoor_fraction is None else mi.Float(
+            np.asarray(outdoor_fraction, np.float32).reshape(-1))
         self.power_scale = opaque((4 * np.pi / num_rays) * (radio.wavelength_m / (4 * np.pi)) ** 2
                                   / (grid.dx * grid.dy))
 
@@ -519,7 +523,7 @@ class Tracer:
         px, py = dr.gather(mi.Float, px, idx), dr.gather(mi.Float, py, idx)
         weight = None
         if fp is not None:
-            spread = self._spread(px, py, {k: dr.gather(mi.Float, v, idx) for k, v in fp.items()})
+            spread = self._spread(px, py, {k: dr.gather(mi.Float, v, idx) for k, v in fp.items()}, cell_offset)
             if spread is None:
                 return None
             source, col, row, weight = spread
@@ -568,7 +572,7 @@ class Tracer:
         dr.eval(*out.values())
         return {k: v.numpy() for k, v in out.items()}
 
-    def _spread(self, px, py, fp):
+    def _spread(self, px, py, fp, cell_offset):
         """The crossings repeated once per grid cell their footprint (:meth:`_footprint`) covers,
         with a tent kernel's weight at the cell's centre, normalised over the whole box (cells off
         the grid included, then dropped: a footprint that crosses the grid's border leaves that
@@ -607,8 +611,13 @@ class Tracer:
         sel = dr.compress(keep)
         if dr.width(sel) == 0:
             return None
-        return (dr.gather(mi.UInt32, parent, sel), dr.gather(mi.Float, col, sel), dr.gather(mi.Float, row, sel),
-                dr.gather(mi.Float, mi.Float(w_np), sel))
+        col, row, w = (dr.gather(mi.Float, a, sel) for a in (col, row, mi.Float(w_np)))
+        if self.outdoor is not None:
+            # the part of the footprint that falls inside a building never reaches the plane: a
+            # cell gets its outdoor part of the kernel's share (the density after the solver's
+            # division by that part is the unobstructed one)
+            w *= dr.gather(mi.Float, self.outdoor, cell_offset + mi.UInt32(row) * g["nx_int"] + mi.UInt32(col))
+        return dr.gather(mi.UInt32, parent, sel), col, row, w
 
     def collect_lit(self, pairs: bool) -> None:
         """From now on, collect the lattice rays' first hits (global face indices, ``lit_faces``)
