@@ -288,6 +288,12 @@ def _set_result(mechanisms: str, seed: int = 0) -> dict:
                                 "abs_err_db_this_reference": {"p50": 0.2, "p95": 0.3, "n": 2},
                                 "reference_moved_gt_1_db": 1, "signed_err_db_main_reference": [13.1, 0.2],
                                 "signed_err_db_this_reference": [0.2, 0.2]}
+    if mechanisms in cs.CONVERGED_MAP_SETS:
+        truth = np.array([-90.0, -100.0, np.nan, -80.0])
+        r["against_converged_map"] = {
+            "diffraction_samples_factor": 16, "converged_map_s": 9.0,
+            "this_map": cs.map_agreement(np.array([-90.5, -100.0, -120.0, np.nan]), truth),
+            "point_deposits_at_default_samples": cs.map_agreement(np.array([-94.0, np.nan, np.nan, -80.0]), truth)}
     if mechanisms in cs.SWEEP_SETS:
         point = {"rays": 10**5, "warm_s": 0.1, "first_call_s": 0.2, "coverage_pct": 50.0, "covered_of_reached_pct": 90.0,
                  "vs_centre": cs._curve_point(r["errors_vs_centre"]), "vs_3x3": cs._curve_point(r["errors_vs_3x3_points"])}
@@ -318,6 +324,8 @@ def test_ckm_solver_targets_and_report_cover_every_mechanism_set(tmp_path):
         assert f"| canyon | {m} |" in md and f"- canyon, {m}: " in md
     assert "not run: predicted 400 s" in md and "## Coverage" in md
     assert "| canyon | diffraction | 2 | 1e+06 | 1.0 | 7 / 12 | 0.2 / 0.3 | 1 | 13.1 0.2 | 0.2 0.2 |" in md
+    # the map against the converged one: both cover 2 cells, |diff| 0.5 and 0 dB; points 1 cell, 4 / 0 dB
+    assert "| canyon | diffraction | 16 | 9.0 | 3 / 3 / 2 | 0.25 / 0.475 | 2 | 2 / 3.8 |" in md
     json.dumps(results)  # what main writes
     curves = {f"canyon {m}": r["rays_vs_error"] for m, r in sets.items() if "rays_vs_error" in r}
     assert cs.write_rays_vs_error_plot(curves, tmp_path / "p.png").stat().st_size > 0
