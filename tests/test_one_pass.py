@@ -196,11 +196,17 @@ def test_footprints_spread_a_sparse_ray_set_over_the_cells_it_covers_and_keep_it
     # half indoor, with no building in the way of the rays)
     half = np.ones((1, 60, 60))
     half[0, :, 50:55] = 0.5
+    half[0, 28:32, 28:32] = 0.5  # near the foot: point crossings only, which landed outdoors
     monkeypatch.setattr(op, "outdoor_fraction", lambda *a, **k: half)
     banded = op.one_pass_moments(radio, tx, np.zeros(3), x, y, [1.5], n, 1, max_footprint_cells=8, **kw)
     band = far & (half[0] == 0.5)
     assert band.sum() > 100
     np.testing.assert_allclose(banded.power[0][band], spread.power[0][band], rtol=1e-5)
+    # a point crossing's deposit stays whole (then divided by the outdoor part), in the same
+    # batches as the spread ones
+    spot = near & (half[0] == 0.5)
+    assert spot.sum() == 16
+    np.testing.assert_allclose(banded.power[0][spot], spread.power[0][spot] / 0.5, rtol=1e-6)
     # the footprint itself: sqrt(4 pi / N) L across the ray, that over |cos theta_z| along it
     import mitsuba as mi
 

@@ -523,10 +523,10 @@ class Tracer:
         px, py = dr.gather(mi.Float, px, idx), dr.gather(mi.Float, py, idx)
         weight = None
         if fp is not None:
-            spread = self._spread(px, py, {k: dr.gather(mi.Float, v, idx) for k, v in fp.items()}, cell_offset)
-            if spread is None:
+            spread_out = self._spread(px, py, {k: dr.gather(mi.Float, v, idx) for k, v in fp.items()}, cell_offset)
+            if spread_out is None:
                 return None
-            source, col, row, weight = spread
+            source, col, row, weight = spread_out
             if source is not None:
                 idx = dr.gather(mi.UInt32, idx, source)
         else:
@@ -613,10 +613,11 @@ class Tracer:
             return None
         col, row, w = (dr.gather(mi.Float, a, sel) for a in (col, row, mi.Float(w_np)))
         if self.outdoor is not None:
-            # the part of the footprint that falls inside a building never reaches the plane: a
-            # cell gets its outdoor part of the kernel's share (the density after the solver's
-            # division by that part is the unobstructed one)
-            w *= dr.gather(mi.Float, self.outdoor, cell_offset + mi.UInt32(row) * g["nx_int"] + mi.UInt32(col))
+            # the part of a footprint that falls inside a building never reaches the plane: a cell
+            # gets its outdoor part of the kernel's share (the density after the solver's division
+            # by that part is the unobstructed one); a point crossing did land outdoors: all of it
+            outdoor = dr.gather(mi.Float, self.outdoor, cell_offset + mi.UInt32(row) * g["nx_int"] + mi.UInt32(col))
+            w = dr.select(dr.gather(mi.Bool, gat(wide), sel), w * outdoor, w)
         return dr.gather(mi.UInt32, parent, sel), col, row, w
 
     def collect_lit(self, pairs: bool) -> None:
