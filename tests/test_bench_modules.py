@@ -288,6 +288,12 @@ def _set_result(mechanisms: str, seed: int = 0) -> dict:
                                 "abs_err_db_this_reference": {"p50": 0.2, "p95": 0.3, "n": 2},
                                 "reference_moved_gt_1_db": 1, "signed_err_db_main_reference": [13.1, 0.2],
                                 "signed_err_db_this_reference": [0.2, 0.2]}
+    if mechanisms in cs.CONVERGED_REFERENCE_SETS:
+        r["against_converged_reference"] = {
+            "samples_per_src": 10**8, "generator": "default (non-deterministic)", "cells": 8, "s": 5.0,
+            "reached_by_pathsolver": int(ref["has_path"].sum()),
+            "covered_of_reached_pct": cs._covered_of_reached_pct(fast["has_path"], ref["has_path"]),
+            "errors_vs_centre": cs._compare(fast, ref)}
     if mechanisms in cs.CONVERGED_MAP_SETS:
         truth = np.array([-90.0, -100.0, np.nan, -80.0])
         r["against_converged_map"] = {
@@ -324,6 +330,10 @@ def test_ckm_solver_targets_and_report_cover_every_mechanism_set(tmp_path):
         assert f"| canyon | {m} |" in md and f"- canyon, {m}: " in md
     assert "not run: predicted 400 s" in md and "## Coverage" in md
     assert "| canyon | diffraction | 2 | 1e+06 | 1.0 | 7 / 12 | 0.2 / 0.3 | 1 | 13.1 0.2 | 0.2 0.2 |" in md
+    conv = sets["diffraction"]["against_converged_reference"]
+    assert "## Against a converged PathSolver reference" in md
+    assert (f"| canyon | diffraction | 8 | 5.0 | {conv['reached_by_pathsolver']} | "
+            f"{cs._f(conv['covered_of_reached_pct'])} | {cs._pp(conv['errors_vs_centre']['path_gain_db'])} |") in md
     # the map against the converged one: both cover 2 cells, |diff| 0.5 and 0 dB; points 1 cell, 4 / 0 dB
     assert "| canyon | diffraction | 16 | 9.0 | 3 / 3 / 2 | 0.25 / 0.475 | 2 | 2 / 3.8 |" in md
     json.dumps(results)  # what main writes
