@@ -920,8 +920,13 @@ def _coverage_lines(results: dict) -> list[str]:
     return lines
 
 
+def _set_rows(results: dict, key: str) -> list[tuple[str, str, dict]]:
+    """(scene, set, the set's ``key`` result) for every set that has one."""
+    return [(name, st, r[key]) for name, st, r in _each_set(results) if r.get(key)]
+
+
 def _reference_check_lines(results: dict) -> list[str]:
-    rows = [(name, st, r["reference_check"]) for name, st, r in _each_set(results) if r.get("reference_check")]
+    rows = _set_rows(results, "reference_check")
     if not rows:
         return []
     lines = ["", "## The reference's convergence", "",
@@ -943,8 +948,7 @@ def _reference_check_lines(results: dict) -> list[str]:
 
 
 def _converged_reference_lines(results: dict) -> list[str]:
-    rows = [(name, st, r["against_converged_reference"]) for name, st, r in _each_set(results)
-            if r.get("against_converged_reference")]
+    rows = _set_rows(results, "against_converged_reference")
     if not rows:
         return []
     lines = ["", "## Against a converged PathSolver reference", "",
@@ -965,8 +969,7 @@ def _converged_reference_lines(results: dict) -> list[str]:
 
 
 def _converged_map_lines(results: dict) -> list[str]:
-    rows = [(name, st, r["against_converged_map"]) for name, st, r in _each_set(results)
-            if r.get("against_converged_map")]
+    rows = _set_rows(results, "against_converged_map")
     if not rows:
         return []
     lines = ["", "## Against the solver's own converged map", "",
