@@ -39,7 +39,10 @@ Per scene and set:
   the layer's definition);
 - **the reference's convergence** (the sets of :data:`REFERENCE_CHECK_SETS`): PathSolver finds a
   wedge only where its samples hit it, so the centres of the cells with the largest gain errors
-  are traced again at :data:`REFERENCE_CHECK_SAMPLES` samples (:func:`reference_check`);
+  are traced again at :data:`REFERENCE_CHECK_SAMPLES` samples (:func:`reference_check`), and
+  the centres of a random subset of the compared cells at :data:`CONVERGED_REFERENCE_SAMPLES`
+  (:func:`against_converged_reference`: the errors against a reference whose reflection-diffraction
+  chains have converged);
 - **speed**: the one-pass time for the whole grid (warm: kernels compiled), one PathSolver call per
   cell (timed on random outdoor cells, at most :data:`LOOP_CELLS` calls or :data:`LOOP_BUDGET_S`
   seconds, and extrapolated to the grid's cells with outdoor area, which the reference mode would
