@@ -192,8 +192,7 @@ class DiffractionSampler:
         w.swap_faces(dr.dot(mid - s, w.n0) > 0)  # the source sees the 0-face, as in Sionna
         k = s - mid
         valid = (w.length > 0) & ((dr.dot(k, w.n0) > EPSILON_FLOAT) | (dr.dot(k, w.nn) > EPSILON_FLOAT))
-        valid &= dr.dot(w.n0, w.nn) < 1.0 - 1e-4  # a flat edge (two coplanar faces) does not diffract
-        valid &= ~_coplanar_on_either_side(dr, mesh, w)
+        valid = _without_flat_edges(dr, mesh, w, valid)  # two coplanar faces do not diffract
         if not self.edge_diffraction:
             valid &= w.primn != w.prim0
         dr.eval(valid, w)
@@ -490,23 +489,24 @@ class DiffractionSampler:
                               first_hit=(take(t_first), take(shape_id), take(first.prim_index)))
 
 
-def _coplanar_on_either_side(dr, mesh, w, tolerance: float = 1e-4):
-    """Edges of ``w`` (a :class:`WedgeGeometry`) between two coplanar faces that lie on either side
-    of it: no wedge at all (a wall's diagonal). Sionna's ``wedge_geometry`` turns each normal away
-    from the other face by the side of it that face's centroid lies on, within ``EPSILON_FLOAT``:
-    for coplanar faces float32 rounding decides, and a flipped normal makes the flat edge a knife
-    edge (zero interior angle) that diffracts strongly (Munich: 920 of 7,209 lit pairs, up to 28 dB
-    of spurious field behind a wall's diagonal). PathSolver never meets such an edge (it samples
-    silhouette edges only). So this test reads the faces, not the normals: the unit directions from
-    the edge into each face, across it, are opposite (within ``tolerance``) for a flat edge and equal
-    for a thin plate's knife edge, which stays."""
+def _without_flat_edges(dr, mesh, w, valid, tolerance: float = 1e-4):
+    """``valid`` less the edges of ``w`` (a :class:`WedgeGeometry`) between two coplanar faces: no
+    wedge at all (a wall's diagonal). Equal normals (within ``tolerance``) say so, but not alone:
+    Sionna's ``wedge_geometry`` turns each normal away from the other face by the side of it that
+    face's centroid lies on, within ``EPSILON_FLOAT``, and for coplanar faces float32 rounding
+    decides. A flipped normal made the flat edge a knife edge (zero interior angle) that diffracts strongly
+    (Munich: 920 of 7,209 lit pairs, up to 28 dB of spurious field behind a wall's diagonal).
+    PathSolver never meets such an edge (it samples silhouette edges only). So the faces are read
+    too: the unit directions from the edge into each face, across it, are opposite for faces on
+    either side of it (flat), and equal for a thin plate's knife edge, which stays."""
 
     def into_face(prim):
         idx = mesh.face_indices(prim)
         r = (mesh.vertex_position(idx.x) + mesh.vertex_position(idx.y) + mesh.vertex_position(idx.z)) / 3.0 - w.o
         return dr.normalize(r - dr.dot(r, w.e_hat) * w.e_hat)
 
-    return (w.prim0 != w.primn) & (dr.dot(into_face(w.prim0), into_face(w.primn)) < -(1.0 - tolerance))
+    valid = valid & (dr.dot(w.n0, w.nn) < 1.0 - tolerance)
+    return valid & ~((w.prim0 != w.primn) & (dr.dot(into_face(w.prim0), into_face(w.primn)) < -(1.0 - tolerance)))
 
 
 def keller_cone(dr, mi, e_hat, n0, nn, sample, ki, downward):

@@ -59,9 +59,9 @@ class Ckm(_Model):
     # diffraction, docs/ckm-one-pass.md); the cap bounds the cells one crossing touches.
     max_footprint_cells: float = Field(
         8.0, ge=1.0, description="fast mode: a ray crossing whose tube footprint on the plane is wider "
-        "than a cell spreads its power over the cells the footprint covers (a square of the footprint's "
-        "area about the crossing, at most this many cells on a side); 1: each crossing into its one cell "
-        "(RadioMapSolver's estimator)")
+        "than a cell spreads its power over the cells the footprint covers (a tent kernel as wide as the "
+        "tube across the ray and stretched by 1 / |cos theta_z| along it, at most this many cells on a "
+        "side); 1: each crossing into its one cell (RadioMapSolver's estimator)")
     adaptive_max_rays: int | None = Field(
         None, ge=1_000, description="fast mode: where more than max_undersampled_fraction of the reached "
         "cells have fewer than min_hits_for_power hits, the pass is rerun with 4x the rays while that "
