@@ -526,17 +526,14 @@ def against_converged_reference(radio, tx, ori, centres_xyz: np.ndarray, fast_at
     """PathSolver at ``samples`` per source (Sionna's default candidate generator) at the cell
     centres ``centres_xyz`` [cells, 3]: the one-pass layers ``fast_at`` of those cells against it
     (:func:`_compare`), the cells each reaches, and the time."""
-    import functools
-
-    config, trace = radio.solver_config, radio.trace
+    config = radio.solver_config
     radio.solver_config = config.model_copy(update={"samples_per_src": int(samples)})
-    radio.trace = functools.partial(trace, deterministic=False)
     try:
         t = time.perf_counter()
-        paths = radio.trace(tx[None], ori[None], centres_xyz)
+        paths = radio.trace(tx[None], ori[None], centres_xyz, deterministic=False)
         s = time.perf_counter() - t
     finally:
-        radio.solver_config, radio.trace = config, trace
+        radio.solver_config = config
     tau0 = np.linalg.norm(centres_xyz - tx, axis=-1) / SPEED_OF_LIGHT
     ref = layers_from_moments(_reference_moments(paths, tau0, codebook))
     return {"samples_per_src": int(samples), "generator": "default (non-deterministic)", "cells": int(len(centres_xyz)),
@@ -923,71 +920,70 @@ def _coverage_lines(results: dict) -> list[str]:
     return lines
 
 
-def _set_rows(results: dict, key: str) -> list[tuple[str, str, dict]]:
-    """(scene, set, the set's ``key`` result) for every set that has one."""
-    return [(name, st, r[key]) for name, st, r in _each_set(results) if r.get(key)]
+def _set_section(results: dict, key: str, title: str, intro: str, columns: list[str], row) -> list[str]:
+    """A report section with a table row per set that has a ``key`` result (none: no section):
+    ``columns`` after scene and set, ``row(result)`` their cells, joined by " | "."""
+    rows = [(name, st, r[key]) for name, st, r in _each_set(results) if r.get(key)]
+    if not rows:
+        return []
+    columns = ["scene", "set"] + columns
+    return (["", f"## {title}", "", intro, "", "| " + " | ".join(columns) + " |", "|---" * len(columns) + "|"]
+            + [f"| {name} | {st} | {row(c)} |" for name, st, c in rows])
 
 
 def _reference_check_lines(results: dict) -> list[str]:
-    rows = _set_rows(results, "reference_check")
-    if not rows:
-        return []
-    lines = ["", "## The reference's convergence", "",
-             "The sampled cells whose centre gain differs most from the one-pass layer, traced again at their "
-             "centre with more PathSolver samples: |one-pass - PathSolver| there against the main reference "
-             f"({SAMPLES_PER_SRC:.0e} samples) and against this one, and how many reference gains moved by more "
-             "than 1 dB (or appeared). Signed errors (one-pass - PathSolver, dB) in cell order.", "",
-             "| scene | set | cells | samples | s | error dB p50 / p95, main reference | with more samples | "
-             "moved > 1 dB | signed, main | signed, more samples |", "|---|---|---|---|---|---|---|---|---|---|"]
-    for name, st, c in rows:
+    def row(c):
         if not c.get("cells"):
-            lines.append(f"| {name} | {st} | 0 | {c['samples_per_src']:.0e} | | | | | | |")
-            continue
-        lines.append(f"| {name} | {st} | {c['cells']} | {c['samples_per_src']:.0e} | {c['s']} | "
-                     f"{_pp(c['abs_err_db_main_reference'])} | {_pp(c['abs_err_db_this_reference'])} | "
-                     f"{c['reference_moved_gt_1_db']} | {' '.join(f'{v:g}' for v in c['signed_err_db_main_reference'])} | "
-                     f"{' '.join(f'{v:g}' for v in c['signed_err_db_this_reference'])} |")
-    return lines
+            return f"0 | {c['samples_per_src']:.0e} | | | | | |"
+        return (f"{c['cells']} | {c['samples_per_src']:.0e} | {c['s']} | "
+                f"{_pp(c['abs_err_db_main_reference'])} | {_pp(c['abs_err_db_this_reference'])} | "
+                f"{c['reference_moved_gt_1_db']} | {' '.join(f'{v:g}' for v in c['signed_err_db_main_reference'])} | "
+                f"{' '.join(f'{v:g}' for v in c['signed_err_db_this_reference'])}")
+
+    return _set_section(
+        results, "reference_check", "The reference's convergence",
+        "The sampled cells whose centre gain differs most from the one-pass layer, traced again at their "
+        "centre with more PathSolver samples: |one-pass - PathSolver| there against the main reference "
+        f"({SAMPLES_PER_SRC:.0e} samples) and against this one, and how many reference gains moved by more "
+        "than 1 dB (or appeared). Signed errors (one-pass - PathSolver, dB) in cell order.",
+        ["cells", "samples", "s", "error dB p50 / p95, main reference", "with more samples", "moved > 1 dB",
+         "signed, main", "signed, more samples"], row)
 
 
 def _converged_reference_lines(results: dict) -> list[str]:
-    rows = _set_rows(results, "against_converged_reference")
-    if not rows:
-        return []
-    lines = ["", "## Against a converged PathSolver reference", "",
-             f"The centres of a random subset of the sampled cells, traced with {CONVERGED_REFERENCE_SAMPLES:.0e} "
-             "samples (Sionna's default candidate generator), where PathSolver's reflection-diffraction chains have "
-             "converged; the one-pass cell layers against them (a centre differs from its cell's mean where a shadow "
-             "edge crosses the cell: these errors bound the one-pass's from above). The main reference's figures "
-             "for the same set are in the tables above.", "",
-             "| scene | set | cells | s | reached | covered % | gain dB p50 / p95 | ToA ns p50 | DS ns p50 / p95 | "
-             "spreads deg p50 | best beam % | top-3 % |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for name, st, c in rows:
+    def row(c):
         e = c["errors_vs_centre"]
-        lines.append(f"| {name} | {st} | {c['cells']} | {c['s']} | {c['reached_by_pathsolver']} | "
-                     f"{_f(c['covered_of_reached_pct'])} | {_pp(e['path_gain_db'])} | {_f(e['toa_ns']['p50'])} | "
-                     f"{_pp(e['rms_delay_spread_ns'])} | {_f(largest_spread_p50(e))} | {e['best_beam_agreement_pct']} | "
-                     f"{_f(e.get('best_beam_top3_agreement_pct'))} |")
-    return lines
+        return (f"{c['cells']} | {c['s']} | {c['reached_by_pathsolver']} | "
+                f"{_f(c['covered_of_reached_pct'])} | {_pp(e['path_gain_db'])} | {_f(e['toa_ns']['p50'])} | "
+                f"{_pp(e['rms_delay_spread_ns'])} | {_f(largest_spread_p50(e))} | {e['best_beam_agreement_pct']} | "
+                f"{_f(e.get('best_beam_top3_agreement_pct'))}")
+
+    return _set_section(
+        results, "against_converged_reference", "Against a converged PathSolver reference",
+        f"The centres of a random subset of the sampled cells, traced with {CONVERGED_REFERENCE_SAMPLES:.0e} "
+        "samples (Sionna's default candidate generator), where PathSolver's reflection-diffraction chains have "
+        "converged; the one-pass cell layers against them (a centre differs from its cell's mean where a shadow "
+        "edge crosses the cell: these errors bound the one-pass's from above). The main reference's figures "
+        "for the same set are in the tables above.",
+        ["cells", "s", "reached", "covered %", "gain dB p50 / p95", "ToA ns p50", "DS ns p50 / p95",
+         "spreads deg p50", "best beam %", "top-3 %"], row)
 
 
 def _converged_map_lines(results: dict) -> list[str]:
-    rows = _set_rows(results, "against_converged_map")
-    if not rows:
-        return []
-    lines = ["", "## Against the solver's own converged map", "",
-             "The one-pass path gain map against the same solver with more diffraction samples and point deposits "
-             "(an unbiased estimator, converged: what PathSolver's sampled reference cannot give where it misses "
-             "diffracted paths), over the cells both cover; and the point estimator at the default samples "
-             "against the same map.", "",
-             "| scene | set | samples x | converged map s | cells: this / converged / both | gain dB p50 / p95, this map "
-             "| cells with points | gain dB p50 / p95, points |", "|---|---|---|---|---|---|---|---|"]
-    for name, st, c in rows:
+    def row(c):
         a, b = c["this_map"], c["point_deposits_at_default_samples"]
-        lines.append(f"| {name} | {st} | {c['diffraction_samples_factor']} | {c['converged_map_s']} | "
-                     f"{a['cells_a']} / {a['cells_b']} / {a['cells_both']} | {_pp(a['abs_diff_db'])} | "
-                     f"{b['cells_a']} | {_pp(b['abs_diff_db'])} |")
-    return lines
+        return (f"{c['diffraction_samples_factor']} | {c['converged_map_s']} | "
+                f"{a['cells_a']} / {a['cells_b']} / {a['cells_both']} | {_pp(a['abs_diff_db'])} | "
+                f"{b['cells_a']} | {_pp(b['abs_diff_db'])}")
+
+    return _set_section(
+        results, "against_converged_map", "Against the solver's own converged map",
+        "The one-pass path gain map against the same solver with more diffraction samples and point deposits "
+        "(an unbiased estimator, converged: what PathSolver's sampled reference cannot give where it misses "
+        "diffracted paths), over the cells both cover; and the point estimator at the default samples "
+        "against the same map.",
+        ["samples x", "converged map s", "cells: this / converged / both", "gain dB p50 / p95, this map",
+         "cells with points", "gain dB p50 / p95, points"], row)
 
 
 def _radio_map_lines(results: dict) -> list[str]:
