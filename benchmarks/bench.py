@@ -95,7 +95,9 @@ def _sum_ckm_solver(r):
                       f"{e3.get('best_beam_top3_agreement_pct')} %)",
                       f"{name}, {ms}: one-pass / RadioMapSolver time at the same rays "
                       f"**{rm.get('one_pass_over_radio_map_time')}x**, path gain |difference| p50 / p95 "
-                      f"{agree.get('p50')} / {agree.get('p95')} dB",
+                      f"{agree.get('p50')} / {agree.get('p95')} dB; like for like (its diffraction model) "
+                      f"{_get(rm, 'path_gain_agreement_like_for_like', 'abs_diff_db', 'p50')} / "
+                      f"{_get(rm, 'path_gain_agreement_like_for_like', 'abs_diff_db', 'p95')} dB",
                       f"{name}, {ms}: targets " + ", ".join(f"{k} {'met' if v else 'NOT met' if v is False else 'n/a'}"
                                                             for k, v in (st.get("targets_met") or {}).items())]
     return lines

@@ -65,6 +65,8 @@ def _ckm_solver(scene: str, mechanisms: str, *keys) -> Figure:
 
 # RadioMapSolver at the one-pass's ray count against the one-pass map, |dB| over cells both cover
 _RMS_AGREEMENT = ("radio_map_solver", "at_one_pass_rays", "path_gain_agreement_with_one_pass", "abs_diff_db")
+# ... and like for like: with diffraction the one-pass restricted to RadioMapSolver's first-order model
+_RMS_LIKE_FOR_LIKE = ("radio_map_solver", "path_gain_agreement_like_for_like", "abs_diff_db")
 
 
 def _largest_spread(scene: str, mechanisms: str) -> Figure:
@@ -132,8 +134,8 @@ def _ckm_solver_targets() -> list[Target]:
                 t("time within 2x of RadioMapSolver's (same grid and mechanisms)",
                   _ckm_solver(scene, ms, "radio_map_solver", "one_pass_over_radio_map_time"), "<=",
                   cs.TARGET_RADIO_MAP_TIME_RATIO, "x"),
-                t("path gain against RadioMapSolver (same mechanisms), p50 <= 0.1 dB",
-                  _ckm_solver(scene, ms, *_RMS_AGREEMENT, "p50"), "<=", cs.TARGET_RADIO_MAP_GAIN_P50_DB, "dB"),
+                t("path gain against RadioMapSolver (same mechanisms, its diffraction model), p50 <= 0.1 dB",
+                  _ckm_solver(scene, ms, *_RMS_LIKE_FOR_LIKE, "p50"), "<=", cs.TARGET_RADIO_MAP_GAIN_P50_DB, "dB"),
             ]
     return rows
 

@@ -280,8 +280,16 @@ def _set_result(mechanisms: str, seed: int = 0) -> dict:
          "radio_map_solver": {"one_pass_unpolarised": {"rays": 10**7, "first_call_s": 1.0, "warm_s": 3.0,
                                                        "cells_per_s": 10.0, "cells_covered": 2},
                               "default_samples": rms, "at_one_pass_rays": rms,
-                              "one_pass_over_radio_map_time": 1.5, "one_pass_v_over_radio_map_time": 1.5},
+                              "one_pass_over_radio_map_time": 1.5, "one_pass_v_over_radio_map_time": 1.5,
+                              "path_gain_agreement_like_for_like": agree, "first_order_diffraction_one_pass": None,
+                              "radio_map_solver_other_seed": cs.map_agreement(np.array([-90.0, -80.0]),
+                                                                              np.array([-90.2, -80.0]))},
          "wall_s": 1.0}
+    if mechanisms != "los_specular":  # with diffraction: the one-pass in RadioMapSolver's model, 0.3 / 0 dB off
+        first_order = cs.map_agreement(np.array([-90.0, -80.0]), np.array([-90.3, -80.0]))
+        r["radio_map_solver"].update(path_gain_agreement_like_for_like=first_order, first_order_diffraction_one_pass={
+            "first_call_s": 1.0, "warm_s": 2.5, "over_radio_map_time": 1.25, "path_gain_agreement": first_order,
+            "agreement_with_full_one_pass": agree})
     if mechanisms in cs.REFERENCE_CHECK_SETS:
         r["reference_check"] = {"samples_per_src": 10**6, "cells": 2, "s": 1.0,
                                 "abs_err_db_main_reference": {"p50": 7.0, "p95": 12.0, "n": 2},
@@ -330,6 +338,11 @@ def test_ckm_solver_targets_and_report_cover_every_mechanism_set(tmp_path):
         assert f"| canyon | {m} |" in md and f"- canyon, {m}: " in md
     assert "not run: predicted 400 s" in md and "## Coverage" in md
     assert "| canyon | diffraction | 2 | 1e+06 | 1.0 | 7 / 12 | 0.2 / 0.3 | 1 | 13.1 0.2 | 0.2 0.2 |" in md
+    # like for like with RadioMapSolver: the first-order run's agreement, judged; the full run's without diffraction
+    assert "| canyon | diffraction | 2.5 (1.25) | 0.15 / 0.285 (2) | 0.1 / 0.19 | 0.025 / 0.0475 |" in md
+    assert "| canyon | los_specular | the full run | 0.025 / 0.0475 (2) | 0.1 / 0.19 | - |" in md
+    assert sets["diffraction"]["targets_met"]["path_gain_p50_vs_radio_map_solver_le_0.1_db"] is False
+    assert sets["los_specular"]["targets_met"]["path_gain_p50_vs_radio_map_solver_le_0.1_db"] is True
     conv = sets["diffraction"]["against_converged_reference"]
     assert "## Against a converged PathSolver reference" in md
     assert (f"| canyon | diffraction | 8 | 5.0 | {conv['reached_by_pathsolver']} | "

@@ -70,7 +70,8 @@ def _ckm_set(coverage=99.5, gain=(0.2, 2.0), top3=99.5, ratio=1.5):
     return {"coverage": {"covered_of_reached_pct": coverage}, "errors_vs_3x3_points": e,
             "errors_vs_centre": {"toa_ns": {"p50": 0.1}}, "speedup_vs_per_cell_loop": 150.0,
             "radio_map_solver": {"one_pass_over_radio_map_time": ratio, "at_one_pass_rays": {
-                "path_gain_agreement_with_one_pass": {"abs_diff_db": {"p50": 0.05, "p95": 0.5}}}}}
+                "path_gain_agreement_with_one_pass": {"abs_diff_db": {"p50": 0.05, "p95": 0.5}}},
+                "path_gain_agreement_like_for_like": {"abs_diff_db": {"p50": 0.05, "p95": 0.5}}}}
 
 
 def test_ckm_solver_targets_read_each_scene_and_mechanism_set():

@@ -274,7 +274,7 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                      refraction: bool = False, diffraction: bool = False, edge_diffraction: bool = False,
                      diffuse_reflection: bool = False, diffraction_samples: int | None = None,
                      max_footprint_cells: float = DEFAULT_MAX_FOOTPRINT_CELLS,
-                     solids: Solids | None = None) -> OnePassMoments:
+                     solids: Solids | None = None, diffraction_with_reflections: bool = True) -> OnePassMoments:
     """Per-cell power moments of one transmitter over a grid, from one shoot-and-bounce pass.
 
     :param radio: :class:`simart_pipeline.radio.tracer.RadioScene` (mesh, materials of its
@@ -314,6 +314,10 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         :mod:`simart_pipeline.ckm.diffraction`, with ``diffraction_samples`` points on the lit
         wedges (default ``DIRECT_SAMPLES_PER_RAY * num_rays``; an eighth of that again on the
         wedges lit through one reflection)
+    :param diffraction_with_reflections: True: diffracted paths with a specular reflection before
+        the wedge (depth >= 2) and specular reflections after it, up to ``max_depth``; False:
+        RadioMapSolver's diffraction alone (transmitter, wedge, grid plane: nothing before or
+        after it), to compare the two like for like
     :return: :class:`OnePassMoments` of grid shape ``[num_heights, ny, nx]``
     """
     from simart_pipeline import engine
@@ -348,7 +352,7 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                      outdoor_fraction=frac)
     acc = _Accumulator(grid, tx_position_m, codebook, ant, rot, radio.wavelength_m)
     with_diffraction = diffraction and int(max_depth) > 0
-    reflections_before = 1 if specular_reflection and depth >= 2 else 0
+    reflections_before = 1 if specular_reflection and depth >= 2 and diffraction_with_reflections else 0
     if with_diffraction:  # the lattice rays' hits name the lit wedges: collected as they are traced
         tracer.collect_lit(pairs=bool(reflections_before))
     with _InOrderWorker(acc) as sink:
@@ -359,7 +363,8 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                                                           DiffractionSampler)
 
             # the diffraction is one of max_depth interactions; specular ones may follow it
-            wedges = DiffractionSampler(radio, tracer, tx_position_m, rot, grid, depth - 1 if depth else 0,
+            after = depth - 1 if depth and diffraction_with_reflections else 0
+            wedges = DiffractionSampler(radio, tracer, tx_position_m, rot, grid, after,
                                         edge_diffraction,
                                         reflections_before=reflections_before)
             wedges.find_wedges(int(num_rays), int(batch_rays))
