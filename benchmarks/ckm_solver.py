@@ -475,13 +475,19 @@ def _slice_paths(paths, rows):
                           for f in fields(paths)})
 
 
+def _cell_points(centres: np.ndarray) -> np.ndarray:
+    """``[cells * 9, 3]``: the centres of each cell's 3 x 3 sub-cells, cell by cell, the fifth of
+    each nine the cell's centre."""
+    offsets = (np.arange(3) - 1) * CELL_M / 3
+    ox, oy = (a.ravel() for a in np.meshgrid(offsets, offsets))
+    return (centres[:, None, :] + np.stack([ox, oy, np.zeros(9)], -1)[None]).reshape(-1, 3)
+
+
 def _pathsolver_reference(radio, tx, ori, centres, codebook) -> tuple[dict, dict, float, object]:
     """PathSolver at 3 x 3 points in each cell (the middle one its centre): (centre layers,
     pooled 3 x 3 layers, s per receiver of the batched run, the run's TracedPaths)."""
     tau0 = np.linalg.norm(centres - tx, axis=-1) / SPEED_OF_LIGHT
-    offsets = (np.arange(3) - 1) * CELL_M / 3  # centres of the 3 x 3 sub-cells
-    ox, oy = (a.ravel() for a in np.meshgrid(offsets, offsets))
-    points = (centres[:, None, :] + np.stack([ox, oy, np.zeros(9)], -1)[None]).reshape(-1, 3)
+    points = _cell_points(centres)
     t = time.perf_counter()
     p_points = radio.trace(tx[None], ori[None], points)
     s_per_rx = (time.perf_counter() - t) / len(points)
@@ -522,24 +528,38 @@ def reference_check(radio, tx, ori, centres_xyz: np.ndarray, fast_at: dict, ref_
 
 
 def against_converged_reference(radio, tx, ori, centres_xyz: np.ndarray, fast_at: dict, codebook,
-                                samples: int = CONVERGED_REFERENCE_SAMPLES) -> dict:
+                                samples: int = CONVERGED_REFERENCE_SAMPLES, points_per_cell: int = 1) -> dict:
     """PathSolver at ``samples`` per source (Sionna's default candidate generator) at the cell
-    centres ``centres_xyz`` [cells, 3]: the one-pass layers ``fast_at`` of those cells against it
-    (:func:`_compare`), the cells each reaches, and the time."""
+    centres ``centres_xyz`` [cells, 3] (``points_per_cell`` 9: at 3 x 3 points per cell as the main
+    reference, 9x the time): the one-pass layers ``fast_at`` of those cells against it
+    (:func:`_compare`: at the centres, and against the 3 x 3 points pooled), the cells each
+    reaches, and the time."""
+    if points_per_cell not in (1, 9):
+        raise ValueError(f"points_per_cell must be 1 or 9, got {points_per_cell}")
+    points = centres_xyz if points_per_cell == 1 else _cell_points(centres_xyz)
     config = radio.solver_config
     radio.solver_config = config.model_copy(update={"samples_per_src": int(samples)})
     try:
         t = time.perf_counter()
-        paths = radio.trace(tx[None], ori[None], centres_xyz, deterministic=False)
+        paths = radio.trace(tx[None], ori[None], points, deterministic=False)
         s = time.perf_counter() - t
     finally:
         radio.solver_config = config
     tau0 = np.linalg.norm(centres_xyz - tx, axis=-1) / SPEED_OF_LIGHT
-    ref = layers_from_moments(_reference_moments(paths, tau0, codebook))
-    return {"samples_per_src": int(samples), "generator": "default (non-deterministic)", "cells": int(len(centres_xyz)),
-            "s": round(s, 1), "reached_by_pathsolver": int(ref["has_path"].sum()),
-            "covered_of_reached_pct": _covered_of_reached_pct(fast_at["has_path"], ref["has_path"]),
-            "errors_vs_centre": _compare(fast_at, ref)}
+    centre_paths = paths if points_per_cell == 1 else _slice_paths(paths, slice(4, None, 9))
+    ref = layers_from_moments(_reference_moments(centre_paths, tau0, codebook))
+    out = {"samples_per_src": int(samples), "generator": "default (non-deterministic)", "cells": int(len(centres_xyz)),
+           "points_per_cell": points_per_cell, "s": round(s, 1)}
+    if points_per_cell == 9:
+        pooled = layers_from_moments(_reference_moments(paths, tau0, codebook, pool=9))
+        out.update(reached_by_pathsolver=int(pooled["has_path"].sum()),
+                   covered_of_reached_pct=_covered_of_reached_pct(fast_at["has_path"], pooled["has_path"]),
+                   errors_vs_3x3_points=_compare(fast_at, pooled))
+    else:
+        out.update(reached_by_pathsolver=int(ref["has_path"].sum()),
+                   covered_of_reached_pct=_covered_of_reached_pct(fast_at["has_path"], ref["has_path"]))
+    out["errors_vs_centre"] = _compare(fast_at, ref)
+    return out
 
 
 def against_converged_map(one_pass, num_rays: int, gain_db: np.ndarray, eligible: np.ndarray, factor: int) -> dict:
@@ -673,7 +693,8 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
     converged = None
     if mechanisms in CONVERGED_REFERENCE_SETS:
         sub = np.sort(order["compare"][:min(sizes["converged_reference_cells"], pick.size)])
-        converged = against_converged_reference(radio, tx, ori, cells_xyz[sub], _layers_at(m, sub), codebook)
+        converged = against_converged_reference(radio, tx, ori, cells_xyz[sub], _layers_at(m, sub), codebook,
+                                                points_per_cell=sizes["converged_reference_points"])
     per_call_s, calls_timed = _per_cell_loop_s(radio, tx, ori, cells_xyz[order["loop"][:sizes["loop_cells"]]],
                                                sizes["loop_budget_s"])
 
@@ -731,7 +752,7 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
 
 
 def run_scene(name: str, spec: dict, num_rays: int, sets, quick: bool, seed: int, ray_counts=RAY_COUNTS,
-              log=print) -> dict:
+              log=print, converged_points: int = 1) -> dict:
     """Every mechanism set of ``sets`` on one scene; a set's sizes from :data:`COMPARE_CELLS`,
     :data:`LOOP_CELLS`, :data:`LOOP_BUDGET_S` (``quick`` picks the first of each pair)."""
     nx, ny = (int(round(s / CELL_M)) for s in spec["size"])
@@ -754,6 +775,7 @@ def run_scene(name: str, spec: dict, num_rays: int, sets, quick: bool, seed: int
             sizes = {"compare_cells": COMPARE_CELLS[s][q], "loop_cells": LOOP_CELLS[q], "loop_budget_s": LOOP_BUDGET_S[q],
                      "check_cells": REFERENCE_CHECK_CELLS[q], "converged_factor": CONVERGED_SAMPLES_FACTOR[q],
                      "converged_reference_cells": CONVERGED_REFERENCE_CELLS[q],
+                     "converged_reference_points": converged_points,
                      "repeats": WARM_REPEATS if s == "los_specular" else (0 if quick else 1)}
             out["sets"][s] = run_set(name, s, xml, spec, num_rays, order, sizes, ray_counts, sample)
             out["sets"][s]["wall_s"] = round(time.perf_counter() - t0, 1)
@@ -980,22 +1002,30 @@ def _reference_check_lines(results: dict) -> list[str]:
 
 
 def _converged_reference_lines(results: dict) -> list[str]:
-    def row(c):
-        e = c["errors_vs_centre"]
-        return (f"{c['cells']} | {c['s']} | {c['reached_by_pathsolver']} | "
+    def row(c, e):
+        return (f"{c['cells']} | {c.get('points_per_cell', 1)} | {c['s']} | {c['reached_by_pathsolver']} | "
                 f"{_f(c['covered_of_reached_pct'])} | {_pp(e['path_gain_db'])} | {_f(e['toa_ns']['p50'])} | "
                 f"{_pp(e['rms_delay_spread_ns'])} | {_f(largest_spread_p50(e))} | {e['best_beam_agreement_pct']} | "
                 f"{_f(e.get('best_beam_top3_agreement_pct'))}")
 
-    return _set_section(
+    columns = ["cells", "points per cell", "s", "reached", "covered %", "gain dB p50 / p95", "ToA ns p50",
+               "DS ns p50 / p95", "spreads deg p50", "best beam %", "top-3 %"]
+    lines = _set_section(
         results, "against_converged_reference", "Against a converged PathSolver reference",
-        f"The centres of a random subset of the sampled cells, traced with {CONVERGED_REFERENCE_SAMPLES:.0e} "
+        f"A random subset of the sampled cells, traced with {CONVERGED_REFERENCE_SAMPLES:.0e} "
         "samples (Sionna's default candidate generator), where PathSolver's reflection-diffraction chains have "
-        "converged; the one-pass cell layers against them (a centre differs from its cell's mean where a shadow "
-        "edge crosses the cell: these errors bound the one-pass's from above). The main reference's figures "
-        "for the same set are in the tables above.",
-        ["cells", "s", "reached", "covered %", "gain dB p50 / p95", "ToA ns p50", "DS ns p50 / p95",
-         "spreads deg p50", "best beam %", "top-3 %"], row)
+        "converged; the one-pass cell layers against their centres (a centre differs from its cell's mean where a "
+        "shadow edge crosses the cell: these errors bound the one-pass's from above). The main reference's figures "
+        "for the same set are in the tables above.", columns, lambda c: row(c, c["errors_vs_centre"]))
+    pooled = [(n, st, r["against_converged_reference"]) for n, st, r in _each_set(results)
+              if (r.get("against_converged_reference") or {}).get("errors_vs_3x3_points")]
+    if pooled:
+        lines += ["", "The same against its 3 x 3 points per cell pooled (the cell, as the main reference; ToA at the "
+                  "centre); coverage of the cells any of the nine points reaches:", "",
+                  "| " + " | ".join(["scene", "set"] + columns) + " |", "|---" * (len(columns) + 2) + "|"]
+        lines += [f"| {n} | {st} | {row(c, {**c['errors_vs_3x3_points'], 'toa_ns': c['errors_vs_centre']['toa_ns']})} |"
+                  for n, st, c in pooled]
+    return lines
 
 
 def _converged_map_lines(results: dict) -> list[str]:
@@ -1132,6 +1162,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--ray-counts", type=float, nargs="+", default=None,
                     help="ray counts of the error curves (default 1e5 .. 1e8; --quick: up to 1e7)")
+    ap.add_argument("--converged-points", type=int, choices=(1, 9), default=1,
+                    help="points per cell of the converged reference: 1 (the centre) or 9 (3 x 3, as the main "
+                         "reference; 9x its time: Munich's 40 cells about 30 min)")
     args = ap.parse_args(argv)
     q = 0 if args.quick else 1
     ray_counts = [int(n) for n in args.ray_counts] if args.ray_counts else (
@@ -1142,6 +1175,7 @@ def main(argv=None) -> int:
                             "compare_cells": {k: COMPARE_CELLS[k][q] for k in args.sets},
                             "per_cell_loop_cells": LOOP_CELLS[q], "per_cell_loop_budget_s": LOOP_BUDGET_S[q],
                             "variant": variant, "seed": args.seed, "ray_counts": list(ray_counts),
+                            "converged_reference_points_per_cell": args.converged_points,
                             "sweep_sets": {k: list(SWEEP_SETS[k]) for k in args.sets if k in SWEEP_SETS},
                             "max_point_s": MAX_POINT_S,
                             "scattering_coefficient_all": ALL_SCATTERING_COEFFICIENT,
@@ -1152,7 +1186,7 @@ def main(argv=None) -> int:
                "scenes": {}}
     for name in args.scenes:
         results["scenes"][name] = run_scene(name, SCENES[name], int(args.rays), args.sets, args.quick, args.seed,
-                                            ray_counts)
+                                            ray_counts, converged_points=args.converged_points)
         print(json.dumps({name: results["scenes"][name]}, indent=1), flush=True)
     results["settings"]["total_s"] = round(time.perf_counter() - t0, 1)
     args.out.mkdir(parents=True, exist_ok=True)

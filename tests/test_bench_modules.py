@@ -299,9 +299,9 @@ def _set_result(mechanisms: str, seed: int = 0) -> dict:
     if mechanisms in cs.CONVERGED_REFERENCE_SETS:
         r["against_converged_reference"] = {
             "samples_per_src": 10**8, "generator": "default (non-deterministic)", "cells": 8, "s": 5.0,
-            "reached_by_pathsolver": int(ref["has_path"].sum()),
+            "points_per_cell": 9, "reached_by_pathsolver": int(ref["has_path"].sum()),
             "covered_of_reached_pct": cs._covered_of_reached_pct(fast["has_path"], ref["has_path"]),
-            "errors_vs_centre": cs._compare(fast, ref)}
+            "errors_vs_centre": cs._compare(fast, ref), "errors_vs_3x3_points": cs._compare(ref, ref)}
     if mechanisms in cs.CONVERGED_MAP_SETS:
         truth = np.array([-90.0, -100.0, np.nan, -80.0])
         r["against_converged_map"] = {
@@ -345,8 +345,12 @@ def test_ckm_solver_targets_and_report_cover_every_mechanism_set(tmp_path):
     assert sets["los_specular"]["targets_met"]["path_gain_p50_vs_radio_map_solver_le_0.1_db"] is True
     conv = sets["diffraction"]["against_converged_reference"]
     assert "## Against a converged PathSolver reference" in md
-    assert (f"| canyon | diffraction | 8 | 5.0 | {conv['reached_by_pathsolver']} | "
+    assert (f"| canyon | diffraction | 8 | 9 | 5.0 | {conv['reached_by_pathsolver']} | "
             f"{cs._f(conv['covered_of_reached_pct'])} | {cs._pp(conv['errors_vs_centre']['path_gain_db'])} |") in md
+    # against its 3 x 3 points: here the reference against itself, every error 0 and every beam agreeing
+    assert "The same against its 3 x 3 points per cell pooled" in md
+    assert f"| canyon | diffraction | 8 | 9 | 5.0 | {conv['reached_by_pathsolver']} | " \
+           f"{cs._f(conv['covered_of_reached_pct'])} | 0 / 0 | " in md
     # the map against the converged one: both cover 2 cells, |diff| 0.5 and 0 dB; points 1 cell, 4 / 0 dB
     assert "| canyon | diffraction | 16 | 9.0 | 3 / 3 / 2 | 0.25 / 0.475 | 2 | 2 / 3.8 |" in md
     json.dumps(results)  # what main writes
