@@ -42,7 +42,7 @@ Per scene and set:
   are traced again at :data:`REFERENCE_CHECK_SAMPLES` samples (:func:`reference_check`), and
   the centres of a random subset of the compared cells at :data:`CONVERGED_REFERENCE_SAMPLES`
   (:func:`against_converged_reference`: the errors against a reference whose reflection-diffraction
-  chains have converged);
+  chains have converged; ``--converged-points 9``: at 3 x 3 points per cell, 9x the time);
 - **speed**: the one-pass time for the whole grid (warm: kernels compiled), one PathSolver call per
   cell (timed on random outdoor cells, at most :data:`LOOP_CELLS` calls or :data:`LOOP_BUDGET_S`
   seconds, and extrapolated to the grid's cells with outdoor area, which the reference mode would
@@ -63,6 +63,13 @@ tr38901 pattern:
 - speed: RadioMapSolver warm (a second call: the first compiles) at its default ``samples_per_tx``
   (1e6) and at the one-pass's ray count; ``one_pass_over_radio_map_time`` is the one-pass warm time
   (every layer, 64 beams) over RadioMapSolver's (path gain only) at the same ray count.
+- the same mechanisms, not the same paths: with diffraction RadioMapSolver diffracts only the
+  transmitter's own rays, into the grid, with no reflection before or after the wedge. The
+  like-for-like path gain (``path_gain_agreement_like_for_like``, which the target reads) is a
+  third one-pass run restricted to that model (``diffraction_with_reflections=False``); the full
+  run's difference is reported beside it. RadioMapSolver with another seed at the same rays gives
+  the two Monte-Carlo runs' own spread (an exact map would differ from one run by about 1/sqrt(2)
+  of it).
 
 Ray count against error (the sets of :data:`SWEEP_SETS`; above the main ray count only on the scenes
 it names): the one-pass (V, as against PathSolver) and RadioMapSolver at 1e5 .. 1e8 rays
