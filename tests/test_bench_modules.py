@@ -314,6 +314,8 @@ def _set_result(mechanisms: str, seed: int = 0) -> dict:
         r["rays_vs_error"] = {"one_pass": [point, {"rays": 10**8, "skipped": "predicted 400 s per call > 300 s"}],
                               "radio_map_solver": [point]}
     r["targets_met"] = cs.targets(r, mechanisms)
+    if mechanisms in cs.CONVERGED_REFERENCE_SETS:
+        r["targets_met_vs_converged_reference"] = cs.targets_vs_converged(r, mechanisms)
     return r
 
 
@@ -349,6 +351,11 @@ def test_ckm_solver_targets_and_report_cover_every_mechanism_set(tmp_path):
             f"{cs._f(conv['covered_of_reached_pct'])} | {cs._pp(conv['errors_vs_centre']['path_gain_db'])} |") in md
     # against its 3 x 3 points: here the reference against itself, every error 0 and every beam agreeing
     assert "The same against its 3 x 3 points per cell pooled" in md
+    # judged again against the converged reference: here the reference against itself, every error 0
+    again = sets["diffraction"]["targets_met_vs_converged_reference"]
+    assert again["path_gain_p95_vs_3x3_le_3_db"] is True and again["best_beam_top3_agreement_ge_99_pct"] is True
+    assert again["speedup_vs_per_cell_loop_ge_100"] == sets["diffraction"]["targets_met"]["speedup_vs_per_cell_loop_ge_100"]
+    assert "The same, the accuracy judged against the converged reference" in md
     assert f"| canyon | diffraction | 8 | 9 | 5.0 | {conv['reached_by_pathsolver']} | " \
            f"{cs._f(conv['covered_of_reached_pct'])} | 0 / 0 | " in md
     # the map against the converged one: both cover 2 cells, |diff| 0.5 and 0 dB; points 1 cell, 4 / 0 dB
