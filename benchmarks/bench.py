@@ -100,6 +100,10 @@ def _sum_ckm_solver(r):
                       f"{_get(rm, 'path_gain_agreement_like_for_like', 'abs_diff_db', 'p95')} dB",
                       f"{name}, {ms}: targets " + ", ".join(f"{k} {'met' if v else 'NOT met' if v is False else 'n/a'}"
                                                             for k, v in (st.get("targets_met") or {}).items())]
+            if st.get("targets_met_vs_converged_reference"):
+                lines.append(f"{name}, {ms}: targets, accuracy against the converged 3 x 3 reference: " + ", ".join(
+                    f"{k} {'met' if v else 'NOT met' if v is False else 'n/a'}"
+                    for k, v in st["targets_met_vs_converged_reference"].items()))
     return lines
 
 
