@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Callable
 
 from benchmarks import targets
+from benchmarks.ckm_solver import judgement
 from benchmarks.targets import lookup as _get
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -98,12 +99,10 @@ def _sum_ckm_solver(r):
                       f"{agree.get('p50')} / {agree.get('p95')} dB; like for like (its diffraction model) "
                       f"{_get(rm, 'path_gain_agreement_like_for_like', 'abs_diff_db', 'p50')} / "
                       f"{_get(rm, 'path_gain_agreement_like_for_like', 'abs_diff_db', 'p95')} dB",
-                      f"{name}, {ms}: targets " + ", ".join(f"{k} {'met' if v else 'NOT met' if v is False else 'n/a'}"
-                                                            for k, v in (st.get("targets_met") or {}).items())]
+                      f"{name}, {ms}: targets " + judgement(st.get("targets_met") or {})]
             if st.get("targets_met_vs_converged_reference"):
-                lines.append(f"{name}, {ms}: targets, accuracy against the converged 3 x 3 reference: " + ", ".join(
-                    f"{k} {'met' if v else 'NOT met' if v is False else 'n/a'}"
-                    for k, v in st["targets_met_vs_converged_reference"].items()))
+                lines.append(f"{name}, {ms}: targets, accuracy against the converged 3 x 3 reference: "
+                             + judgement(st["targets_met_vs_converged_reference"]))
     return lines
 
 

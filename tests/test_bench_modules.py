@@ -301,7 +301,8 @@ def _set_result(mechanisms: str, seed: int = 0) -> dict:
             "samples_per_src": 10**8, "generator": "default (non-deterministic)", "cells": 8, "s": 5.0,
             "points_per_cell": 9, "reached_by_pathsolver": int(ref["has_path"].sum()),
             "covered_of_reached_pct": cs._covered_of_reached_pct(fast["has_path"], ref["has_path"]),
-            "errors_vs_centre": cs._compare(fast, ref), "errors_vs_3x3_points": cs._compare(ref, ref)}
+            "errors_vs_centre": cs._compare(fast, ref), "errors_vs_3x3_points": cs._compare(ref, ref),
+            "reached_by_pathsolver_3x3": 8, "covered_of_reached_pct_3x3": 75.0}
     if mechanisms in cs.CONVERGED_MAP_SETS:
         truth = np.array([-90.0, -100.0, np.nan, -80.0])
         r["against_converged_map"] = {
@@ -349,15 +350,16 @@ def test_ckm_solver_targets_and_report_cover_every_mechanism_set(tmp_path):
     assert "## Against a converged PathSolver reference" in md
     assert (f"| canyon | diffraction | 8 | 9 | 5.0 | {conv['reached_by_pathsolver']} | "
             f"{cs._f(conv['covered_of_reached_pct'])} | {cs._pp(conv['errors_vs_centre']['path_gain_db'])} |") in md
-    # against its 3 x 3 points: here the reference against itself, every error 0 and every beam agreeing
+    # against its 3 x 3 points (here the reference against itself: every error 0), with the cells'
+    # own coverage (any of nine points reached), not the centres'
     assert "The same against its 3 x 3 points per cell pooled" in md
-    # judged again against the converged reference: here the reference against itself, every error 0
+    assert "| canyon | diffraction | 8 | 9 | 5.0 | 8 | 75 | 0 / 0 | " in md
+    # judged again against the converged reference: every error 0, the pooled coverage (75 %) read
     again = sets["diffraction"]["targets_met_vs_converged_reference"]
     assert again["path_gain_p95_vs_3x3_le_3_db"] is True and again["best_beam_top3_agreement_ge_99_pct"] is True
+    assert again["coverage_of_pathsolver_cells_ge_99_pct"] is False
     assert again["speedup_vs_per_cell_loop_ge_100"] == sets["diffraction"]["targets_met"]["speedup_vs_per_cell_loop_ge_100"]
     assert "The same, the accuracy judged against the converged reference" in md
-    assert f"| canyon | diffraction | 8 | 9 | 5.0 | {conv['reached_by_pathsolver']} | " \
-           f"{cs._f(conv['covered_of_reached_pct'])} | 0 / 0 | " in md
     # the map against the converged one: both cover 2 cells, |diff| 0.5 and 0 dB; points 1 cell, 4 / 0 dB
     assert "| canyon | diffraction | 16 | 9.0 | 3 / 3 / 2 | 0.25 / 0.475 | 2 | 2 / 3.8 |" in md
     json.dumps(results)  # what main writes
