@@ -179,6 +179,9 @@ CONVERGED_REFERENCE_SAMPLES = 10**8
 # estimator at the default samples beside it (docs/ckm-one-pass.md, "Session 12").
 CONVERGED_MAP_SETS = ("diffraction",)
 CONVERGED_SAMPLES_FACTOR = (4, 16)  # (quick, full)
+# The second pass on undersampled cells (ckm.diffraction_resample_factor): its run-time/error front,
+# beside the converged map (off by default: docs/ckm-one-pass.md, "Session 15")
+SECOND_PASS_FACTORS = (4, 8)
 LOOP_CELLS = (6, 30)          # single PathSolver calls timed per set, at most (quick, full) ...
 LOOP_BUDGET_S = (10.0, 20.0)  # ... or until this many seconds have passed (at least MIN_LOOP_CALLS)
 MIN_LOOP_CALLS = 3
@@ -568,21 +571,45 @@ def against_converged_reference(radio, tx, ori, centres_xyz: np.ndarray, fast_at
     return out
 
 
-def against_converged_map(one_pass, num_rays: int, gain_db: np.ndarray, eligible: np.ndarray, factor: int) -> dict:
+def against_converged_map(one_pass, num_rays: int, gain_db: np.ndarray, eligible: np.ndarray, factor: int,
+                          fast_s: float | None = None) -> dict:
     """The path gain map ``gain_db`` (dB, NaN: no value) against the one-pass map with ``factor``
     times the diffraction samples and point deposits, and the point map at the default samples
-    against the same, over the ``eligible`` cells. ``one_pass(n, rx_polarization, **kw)``: a
-    callable making the solver run (:func:`run_set`'s)."""
+    against the same, over the ``eligible`` cells; and the front of the second pass on
+    undersampled cells (:data:`SECOND_PASS_FACTORS`, :func:`second_pass_front`).
+    ``one_pass(n, rx_polarization, **kw)``: a callable making the solver run (:func:`run_set`'s);
+    ``fast_s``: the main run's time."""
     from simart_pipeline.ckm.diffraction import DIRECT_SAMPLES_PER_RAY
 
     t = time.perf_counter()
-    dense = one_pass(num_rays, diffraction_samples=factor * DIRECT_SAMPLES_PER_RAY * num_rays, max_footprint_cells=1)()
+    dense = one_pass(num_rays, diffraction_samples=factor * DIRECT_SAMPLES_PER_RAY * num_rays, max_footprint_cells=1,
+                     diffraction_resample_factor=1)()
     dense_s = time.perf_counter() - t
     points = one_pass(num_rays, max_footprint_cells=1)()
-    truth = dense.layers()["path_gain_db"][0][eligible]
+    truth_map = dense.layers()["path_gain_db"][0]
+    truth = truth_map[eligible]
     return {"diffraction_samples_factor": factor, "converged_map_s": round(dense_s, 1),
             "this_map": map_agreement(gain_db[eligible], truth),
-            "point_deposits_at_default_samples": map_agreement(points.layers()["path_gain_db"][0][eligible], truth)}
+            "point_deposits_at_default_samples": map_agreement(points.layers()["path_gain_db"][0][eligible], truth),
+            "second_pass": second_pass_front(one_pass, num_rays, gain_db, eligible, truth_map, fast_s)}
+
+
+def second_pass_front(one_pass, num_rays: int, gain_db: np.ndarray, eligible: np.ndarray, truth_db: np.ndarray,
+                      fast_s: float | None) -> list[dict]:
+    """``diffraction_resample_factor`` against run time and error: per factor of
+    :data:`SECOND_PASS_FACTORS`, the run's time (and over ``fast_s``, the map without it), what
+    the pass did, the cells it gives a value that ``gain_db`` had none (``newly_valued``, their
+    gain against the converged map ``truth_db``) and the whole map against it."""
+    out = []
+    for f in SECOND_PASS_FACTORS:
+        m, _, s = _warm(one_pass(num_rays, diffraction_resample_factor=f))
+        g = m.layers()["path_gain_db"][0]
+        new = eligible & np.isfinite(g) & ~np.isfinite(gain_db)
+        out.append({"factor": f, "s": round(s, 2), "over_one_pass_time": None if not fast_s else round(s / fast_s, 3),
+                    "pass": m.second_pass, "cells_valued": int((eligible & np.isfinite(g)).sum()),
+                    "newly_valued": map_agreement(g[new], truth_db[new]),
+                    "whole_map": map_agreement(g[eligible], truth_db[eligible])})
+    return out
 
 
 def _per_cell_loop_s(radio, tx, ori, cells_xyz: np.ndarray, budget_s: float = float("inf"),
@@ -670,6 +697,7 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
     solids = radio_solids(radio)  # once per radio scene, as ckm_layers does once per tile
 
     def one_pass(n, rx_polarization="V", **kw):
+        kw.setdefault("diffraction_resample_factor", cfg.ckm.diffraction_resample_factor)  # the config's default
         return lambda: op.one_pass_moments(radio, tx, ori, x, y, [HEIGHT_M], n, MAX_DEPTH, codebook=codebook,
                                            rx_polarization=rx_polarization, solids=solids, **switches, **kw)
 
@@ -724,6 +752,7 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
         "one_pass": {"rays": num_rays, "max_depth": MAX_DEPTH, "beams": int(codebook.shape[0]),
                      "first_call_s": _r3(first_s), "warm_s": round(fast_s, 3), "timed_calls": repeats or 1,
                      "ray_hits": int(m.count.sum()), "cells_per_s": round(n_cells / fast_s, 1),
+                     "second_pass": m.second_pass,
                      "coverage_pct": _coverage_pct(fast["path_gain_db"][0], eligible)},
         "pathsolver": {"samples_per_src": SAMPLES_PER_SRC, "compared_cells": int(pick.size),
                        "points_per_cell": 9, "cap_retries": int(radio.cap_retries - retries0),
@@ -746,7 +775,7 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
     }
     if mechanisms in CONVERGED_MAP_SETS:
         out["against_converged_map"] = against_converged_map(one_pass, num_rays, fast["path_gain_db"][0], eligible,
-                                                             sizes["converged_factor"])
+                                                             sizes["converged_factor"], fast_s)
     if mechanisms in SWEEP_SETS:
         if name not in SWEEP_SETS[mechanisms]:
             ray_counts = [n for n in ray_counts if n <= num_rays]
@@ -931,7 +960,7 @@ def report(results: dict) -> str:
         lines.append(_row(f"{name}, {st}, centre", r["errors_vs_centre"]))
         lines.append(_row(f"{name}, {st}, 3x3", r["errors_vs_3x3_points"]))
     lines += (_coverage_lines(results) + _reference_check_lines(results) + _converged_reference_lines(results)
-              + _converged_map_lines(results))
+              + _converged_map_lines(results) + _second_pass_lines(results))
     lines += ["", "## Speed", "",
               "Times measured side by side in this run; the per-cell loop was timed on random outdoor cells "
               "(n calls) and extrapolated to every cell with outdoor area, as was the batched run (s per "
@@ -1073,6 +1102,27 @@ def _converged_map_lines(results: dict) -> list[str]:
         "against the same map.",
         ["samples x", "converged map s", "cells: this / converged / both", "gain dB p50 / p95, this map",
          "cells with points", "gain dB p50 / p95, points"], row)
+
+
+def _second_pass_lines(results: dict) -> list[str]:
+    rows = [(n, st, p) for n, st, r in _each_set(results)
+            for p in ((r.get("against_converged_map") or {}).get("second_pass") or [])]
+    if not rows:
+        return []
+    lines = ["", "## Second pass on undersampled cells", "",
+             "`ckm.diffraction_resample_factor` (off by default): the cells left with 1 to min_hits_for_power - 1 "
+             "hits get the diffracted part of the stretches of edge that reached them again from this many times "
+             "the samples. The cells it gives a value and the whole map, against the converged map above.", "",
+             "| scene | set | factor | s | over the map without it | undersampled cells | stretches | new samples "
+             "| left undersampled | newly valued cells | their gain dB p50 / p95 | whole map dB p50 / p95 |",
+             "|---" * 12 + "|"]
+    for n, st, p in rows:
+        q = p["pass"] or {}
+        lines.append(f"| {n} | {st} | {p['factor']} | {p['s']} | {_f(p['over_one_pass_time'])} | "
+                     f"{q.get('undersampled_cells', '-')} | {q.get('stretches', '-')} | {q.get('new_samples', '-')} | "
+                     f"{q.get('still_undersampled', '-')} | {p['newly_valued']['cells_a']} | "
+                     f"{_pp(p['newly_valued']['abs_diff_db'])} | {_pp(p['whole_map']['abs_diff_db'])} |")
+    return lines
 
 
 def _radio_map_lines(results: dict) -> list[str]:

@@ -662,7 +662,7 @@ def test_edges_between_coplanar_faces_do_not_diffract(tmp_path, monkeypatch):
     radio = RadioScene.from_config(_write_scene(tmp_path / "s", {"b": (box, "marble")}, 0.2), _cfg())
     seen = {}
     trace = dif.DiffractionSampler.trace
-    monkeypatch.setattr(dif.DiffractionSampler, "trace", lambda self, *a: (seen.setdefault("s", self), trace(self, *a))[1])
+    monkeypatch.setattr(dif.DiffractionSampler, "trace", lambda self, *a, **k: (seen.setdefault("s", self), trace(self, *a, **k))[1])
     x, y = _axes(260.0, 40, -30.0, 40, 2.0)
     op.one_pass_moments(radio, np.array([274.0, -20.0, 25.0]), np.zeros(3), x, y, [1.5], 200_000, 1,
                         diffraction=True, specular_reflection=False, rx_polarization="V")
@@ -902,16 +902,63 @@ def test_lit_wedges_from_the_tracer_hits_equal_those_of_rays_cast_again(monkeypa
         np.testing.assert_array_equal(getattr(a, f.name), getattr(b, f.name))
 
 
+def test_second_pass_replaces_the_diffracted_part_of_undersampled_cells_by_finer_samples(tmp_path, monkeypatch):
+    """diffraction_resample_factor: the cells left with 1 to 4 ray hits (below
+    min_hits_for_power) behind a block get the diffracted part of the (source, wedge) pairs that
+    reached them again from 4x the samples. Cells with enough hits keep their moments bit for
+    bit; in the undersampled ones the gain moves towards a map of 64x the samples (p50 error
+    measured 2.5 -> 0.7 dB) and more cells get a value. With the new samples' lattice equal to
+    the first pass's (factor 1 forced into the second pass) the replayed samples and the new ones
+    are the same rays, so taking one out and putting the other in changes no bit anywhere."""
+    radio = RadioScene.from_config(_box_and_ground_scene(tmp_path, False), _cfg())
+    tx, n = np.array([0.0, 0.0, 10.0]), 20_000
+    x, y = _axes(0.0, 24, -24.0, 24, 2.0)
+    kw = dict(diffraction=True, specular_reflection=False, rx_polarization="V", max_footprint_cells=1,
+              codebook=np.ones((1, 1), complex))
+
+    def run(**more):
+        return op.one_pass_moments(radio, tx, np.zeros(3), x, y, [1.5], n, 1, **kw, **more)
+
+    first, second, dense = run(), run(diffraction_resample_factor=4), run(diffraction_samples=64 * n)
+    under = (first.count >= 1) & (first.count < op.DEFAULT_MIN_HITS_FOR_POWER) & ~first.masked
+    assert under.sum() >= 10 and first.second_pass is None
+    assert second.second_pass["undersampled_cells"] == under.sum() and second.second_pass["pairs"] >= 1
+    assert second.second_pass["new_samples"] > 0
+    for f in fields(CellMoments):
+        np.testing.assert_array_equal(getattr(second, f.name)[~under], getattr(first, f.name)[~under], err_msg=f.name)
+    hit = under & (second.power > 0)
+    err_first = np.abs(10 * np.log10(first.power[hit] / dense.power[hit]))
+    err_second = np.abs(10 * np.log10(second.power[hit] / dense.power[hit]))
+    assert np.median(err_second) < 0.5 * np.median(err_first), (err_first, err_second)
+    valued = lambda m: m.layers()["enough_hits"] & ~m.masked  # noqa: E731
+    assert valued(second).sum() > valued(first).sum() and not (valued(first) & ~valued(second)).any()
+
+    original = op._resample_undersampled
+    done = {}
+
+    def same_lattice(acc, wedges, factor, *args):
+        done.update(original(acc, wedges, 1, *args))
+        return done
+
+    monkeypatch.setattr(op, "_resample_undersampled", same_lattice)
+    again = run(diffraction_resample_factor=4)
+    assert done["pairs"] >= 1 and done["new_samples"] > 0
+    for f in fields(CellMoments):
+        np.testing.assert_array_equal(getattr(again, f.name), getattr(first, f.name), err_msg=f.name)
+
+
+@pytest.mark.parametrize("resample", [1, 4], ids=["one pass", "with the second pass"])
 @pytest.mark.parametrize("sampled", [False, True], ids=["specular", "with diffuse reflection and refraction"])
-def test_diffraction_is_deterministic_and_batch_independent(tmp_path, sampled):
+def test_diffraction_is_deterministic_and_batch_independent(tmp_path, sampled, resample):
     """Diffraction alone, and with the sampled interactions (whose random numbers the diffracted
-    rays key by their own sample index): the same call twice is bitwise equal, another batch size
-    changes only the float64 summation order."""
+    rays key by their own sample index), with and without the second pass on undersampled cells:
+    the same call twice is bitwise equal, another batch size changes only the float64 summation
+    order."""
     radio = RadioScene.from_config(_box_and_ground_scene(tmp_path, True), _cfg())
     x, y = _axes(0.0, 20, 0.0, 20, 2.0)
     codebook = np.ones((1, 1), complex)
-    kw = dict(diffraction=True, codebook=codebook, min_hits_for_power=1, diffuse_reflection=sampled,
-              refraction=sampled)
+    kw = dict(diffraction=True, codebook=codebook, min_hits_for_power=1 if resample == 1 else 20,
+              diffuse_reflection=sampled, refraction=sampled, diffraction_resample_factor=resample)
     a = op.one_pass_moments(radio, np.array([0.0, 0.0, 10.0]), np.zeros(3), x, y, [1.5], 200_000, 2, **kw)
     b = op.one_pass_moments(radio, np.array([0.0, 0.0, 10.0]), np.zeros(3), x, y, [1.5], 200_000, 2, **kw)
     c = op.one_pass_moments(radio, np.array([0.0, 0.0, 10.0]), np.zeros(3), x, y, [1.5], 200_000, 2,
@@ -921,6 +968,8 @@ def test_diffraction_is_deterministic_and_batch_independent(tmp_path, sampled):
         np.testing.assert_array_equal(va, vb)
         np.testing.assert_allclose(vc, va, rtol=1e-9, atol=0)
     assert (a.count > 0).sum() > 0
+    if resample > 1:
+        assert a.second_pass["pairs"] >= 1 and a.second_pass == c.second_pass
 
 
 # --- refraction and diffuse reflection: one drawn interaction per hit -------------------------------

@@ -80,6 +80,7 @@ PILOT_BATCH = 1 << 22  # pilot points evaluated at once
 DEPARTURE_QUANTUM = 2.0**-7  # diffracted paths' departure directions (for beams and angles)
 SAMPLES_PER_BATCH_RAY = 4  # diffraction samples traced at once per lattice ray of a batch: a
 #                            sample's state is smaller than a ray's, and fewer launches cost less
+STRETCHES_PER_PAIR = 64  # the second pass resamples a pair's edge in runs of 1/64 of its samples
 DIFFRACTED_RAY_KEY = 0x9E3779B9  # diffracted rays' random-number keys: sample index plus this
 _LATTICE_STEP = 0x9E3779B9  # round(2**32 / golden ratio): the lattice's cone coordinate, fixed point
 
@@ -109,6 +110,7 @@ class DiffractionSampler:
         self._dr_all = None  # _wedge_np as Dr.Jit arrays, built on first use
         self._u_lo = self._u_span = self._weight = None  # from pilot()
         self._dr_span = None
+        self._counts = self._starts = None  # samples per pair of the last trace() and where they start
 
     @property
     def num_wedges(self) -> int:
@@ -322,48 +324,111 @@ class DiffractionSampler:
         self._u_lo, self._u_span, self._weight = lo, span, weight
         self._dr_span = None
 
-    def trace(self, num_samples: int, batch: int, sink) -> None:
-        """Samples on the wedges found by :meth:`find_wedges`, deposits handed to ``sink``."""
+    def trace(self, num_samples: int, batch: int, sink, tag_stretches: bool = False) -> None:
+        """Samples on the wedges found by :meth:`find_wedges`, deposits handed to ``sink``;
+        ``tag_stretches``: each deposit names the stretch of its pair's edge its sample came from
+        (``stretch``: pair x :data:`STRETCHES_PER_PAIR` + stretch), for :meth:`resample`."""
         if self.num_wedges == 0 or num_samples <= 0:
             return
-        mi = self.mi
         if self._weight is None:
             self.pilot()
         counts = self.allocation(int(num_samples))
-        ends = np.cumsum(counts)
+        self._counts, self._starts = counts, np.cumsum(counts) - counts
+        pairs = np.flatnonzero(counts)
+        self._trace_segments(pairs, np.zeros(len(pairs), np.int64), counts[pairs], 1, batch, sink, tag_stretches)
+
+    def resample(self, stretches: np.ndarray, factor: int, batch: int, replay_sink, finer_sink) -> int:
+        """A second pass on the stretches ``stretches`` (tags of :meth:`trace`'s deposits) of the
+        last :meth:`trace`: their samples of that pass again, exactly (to ``replay_sink``: what
+        they added, to be taken out), and ``factor`` times as many new ones over the same part of
+        the edge (to ``finer_sink``: each standing for ``1 / factor`` of a first-pass sample's
+        share, on a lattice of their own, random numbers keyed past the first pass's). A stretch
+        is the ``b``-th of :data:`STRETCHES_PER_PAIR` runs of consecutive samples of a pair (the
+        ``k``-th of ``n`` lies in ``floor(k S / n)``): a cell far from an edge is reached from
+        near one point of it (Keller's law), so a few stretches carry the rays it got. Returns
+        the new samples' count."""
+        if self._counts is None:
+            raise RuntimeError("resample() needs a trace() first")
+        tags = np.unique(np.asarray(stretches, np.int64))
+        pair, b = tags // STRETCHES_PER_PAIR, tags % STRETCHES_PER_PAIR
+        n = self._counts[pair]
+        k_lo = (b * n + STRETCHES_PER_PAIR - 1) // STRETCHES_PER_PAIR
+        k_hi = ((b + 1) * n + STRETCHES_PER_PAIR - 1) // STRETCHES_PER_PAIR
+        keep = k_hi > k_lo
+        pair, k_lo, m = pair[keep], k_lo[keep], (k_hi - k_lo)[keep]
+        if not len(pair) or int(factor) < 1:
+            return 0
+        self._trace_segments(pair, k_lo, m, 1, batch, replay_sink)
+        self._trace_segments(pair, k_lo, m, int(factor), batch, finer_sink)
+        return int(m.sum()) * int(factor)
+
+    def _trace_segments(self, pair: np.ndarray, k0: np.ndarray, m: np.ndarray, factor: int, batch: int, sink,
+                        tag_stretches: bool = False) -> None:
+        """Segment ``i``: the first-pass samples ``k0[i] .. k0[i] + m[i] - 1`` of pair ``pair[i]``
+        (``factor`` 1: those very samples, keyed as in the first pass) or ``factor m[i]`` new ones
+        over the same stretch of edge (:meth:`_lattice`), traced in batches."""
+        mi = self.mi
         order = self._wedge_np["order"]
         if np.any(np.diff(order) < 0):
             raise AssertionError("find_wedges stores the direct wedges before the reflected pairs")
-        starts = mi.UInt32((ends - counts).astype(np.uint32))
-        n_all = mi.UInt32(counts.astype(np.uint32))
-        # the samples of each source order are contiguous: batches never mix orders
-        split = int(ends[order == 0][-1]) if (order == 0).any() else 0
-        for o, lo, hi in ((0, 0, split), (1, split, int(ends[-1]))):
+        srt = np.argsort(pair, kind="stable")  # direct pairs first: batches never mix source orders
+        pair, k0, m = pair[srt], k0[srt], m[srt]
+        cnt = m * int(factor)
+        ends = np.cumsum(cnt)
+        seg_start = ends - cnt
+        if factor == 1:  # the first pass's keys
+            base = self._starts[pair] + k0
+        else:  # past every first-pass key
+            base = int(self._counts.sum()) + seg_start
+        seg = {"pair": pair, "k0": k0, "start": seg_start, "base": base}
+        seg = {k: mi.UInt32(np.asarray(v, np.int64).astype(np.uint32)) for k, v in seg.items()}
+        seg["n"] = mi.UInt32(np.maximum(self._counts, 1).astype(np.uint32))
+        direct = order[pair] == 0
+        split = int(ends[direct][-1]) if direct.any() else 0
+        for o, lo, hi in ((0, 0, split), (1, split, int(ends[-1]) if len(ends) else 0)):
             for start in range(lo, hi, int(batch)):
                 stop = min(start + int(batch), hi)
-                # the pair each sample belongs to: np.repeat over the pairs the batch touches
-                w0, w1 = np.searchsorted(ends, [start, stop - 1], side="right")
-                span = np.arange(w0, w1 + 1)
-                reps = np.maximum(np.minimum(ends[span], stop) - np.maximum(ends[span] - counts[span], start), 0)
-                w = mi.UInt32(np.repeat(span, reps).astype(np.uint32))
-                self._trace_batch(w, self._lattice(start, stop, w, starts, n_all), o, sink)
+                # the segment each sample belongs to: np.repeat over the segments the batch touches
+                s0, s1 = np.searchsorted(ends, [start, stop - 1], side="right")
+                span = np.arange(s0, s1 + 1)
+                reps = np.maximum(np.minimum(ends[span], stop) - np.maximum(ends[span] - cnt[span], start), 0)
+                s = mi.UInt32(np.repeat(span, reps).astype(np.uint32))
+                lattice = self._lattice(start, stop, s, seg, int(factor), tag_stretches)
+                self._trace_batch(lattice["pair"], lattice, o, sink)
 
-    def _lattice(self, start: int, stop: int, w, starts, n_all):
-        """The rank-1 lattice points of samples ``start..stop-1`` (pairs ``w``): the ``k``-th of
-        a pair's ``n`` at ``u = lo + span (k + 1/2) / n`` along the edge (``lo``, ``span``: the
-        pair's stretch from :meth:`pilot`), ``v = frac(k / golden ratio)`` round the cone (32-bit
-        fixed point, exact for any ``k``); the share of the edge each sample stands for,
-        ``span / n``; and each sample's global index."""
+    def _lattice(self, start: int, stop: int, s, seg: dict, factor: int, tag_stretches: bool = False) -> dict:
+        """The rank-1 lattice points of samples ``start..stop-1`` of the segments ``s``
+        (:meth:`_trace_segments`): the ``k``-th of a pair's ``n`` first-pass samples at
+        ``u = lo + span (k + 1/2) / n`` along the edge (``lo``, ``span``: the pair's stretch from
+        :meth:`pilot`), ``v = frac(k / golden ratio)`` round the cone (32-bit fixed point, exact
+        for any ``k``), standing for ``span / n`` of the edge; with ``factor`` f > 1, the ``j``-th
+        new sample of a segment at ``k = k0 + (j + 1/2) / f`` and ``v = frac(j / golden ratio)``,
+        for ``span / (n f)`` (its ray tube, and so its footprint, 1 / f of a first-pass
+        sample's). Also each sample's pair, key (``base`` of its segment plus ``j``) and, with
+        ``tag_stretches``, its stretch tag."""
         dr, mi = self.dr, self.mi
         if self._dr_span is None:
             self._dr_span = (mi.Float(self._u_lo.astype(np.float32)), mi.Float(self._u_span.astype(np.float32)))
-        index = dr.arange(mi.UInt32, start, stop)
-        k = index - dr.gather(mi.UInt32, starts, w)
-        n_w = mi.Float(dr.gather(mi.UInt32, n_all, w))
+        j = dr.arange(mi.UInt32, start, stop) - dr.gather(mi.UInt32, seg["start"], s)
+        w = dr.gather(mi.UInt32, seg["pair"], s)
+        k0 = dr.gather(mi.UInt32, seg["k0"], s)
+        n_w = mi.Float(dr.gather(mi.UInt32, seg["n"], w))
         lo, span = (dr.gather(mi.Float, a, w) for a in self._dr_span)
-        u = lo + span * (mi.Float(k) + 0.5) / n_w
-        v = mi.Float((k * _LATTICE_STEP) >> 8) * (2.0**-24)
-        return dict(u=u, v=v, edge_share=span / n_w, index=index)
+        if factor == 1:
+            k = k0 + j
+            u = lo + span * (mi.Float(k) + 0.5) / n_w
+            v = mi.Float((k * _LATTICE_STEP) >> 8) * (2.0**-24)
+            share = span / n_w
+        else:
+            k = k0 + j // factor
+            u = lo + span * (mi.Float(k0) + (mi.Float(j) + 0.5) / factor) / n_w
+            v = mi.Float((j * _LATTICE_STEP) >> 8) * (2.0**-24)
+            share = span / (n_w * factor)
+        out = dict(u=u, v=v, edge_share=share, index=dr.gather(mi.UInt32, seg["base"], s) + j, pair=w)
+        if tag_stretches:
+            stretch = dr.minimum(mi.UInt32(mi.Float(k) * (STRETCHES_PER_PAIR / n_w)), STRETCHES_PER_PAIR - 1)
+            out["stretch"] = w * STRETCHES_PER_PAIR + stretch
+        return out
 
     def _incident(self, q, q_off, src, plane_n, plane_off, order: int):
         """Where the source's field reaches ``q``: (valid, Jones vector of the field arriving at
@@ -479,6 +544,8 @@ class DiffractionSampler:
                      # departure is fixed whatever the arrival: rank-one "mirror" columns
                      # (dep_k ko), so that the deposit's normalised M d_c is that direction
                      **{f"m{k}": dd[k] * kko for k in range(3)})
+        if "stretch" in lattice:  # the deposits name it (one_pass's second pass)
+            state["stretch"] = take(lattice["stretch"])
         if self.tracer.sampled:
             # diffuse reflection or refraction on: the tracer's random numbers are keyed by a ray
             # index (not a lattice ray's: offset), and the delay restarts at q (``anchor``: the

@@ -143,6 +143,7 @@ def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, t
             min_hits_for_spread=cfg.ckm.min_hits_for_spread, min_hits_for_power=cfg.ckm.min_hits_for_power,
             min_effective_hits_for_power=cfg.ckm.min_effective_hits_for_power,
             max_footprint_cells=cfg.ckm.max_footprint_cells, cell_size_m=cfg.ckm.cell_size_m,
+            diffraction_resample_factor=cfg.ckm.diffraction_resample_factor,
             indoor=grid.inside_building | grid.outside_region[None], solids=solids,
             # as the reference mode's receiver: its polarisation, not the whole field
             rx_polarization=rx.polarization if rx.pattern == "iso" else None,

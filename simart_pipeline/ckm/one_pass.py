@@ -82,6 +82,7 @@ import pandas as pd
 from scipy import sparse
 
 from simart_pipeline.ckm.moments import CellMoments, layers_from_moments, too_few_for_power
+from simart_pipeline.ckm.diffraction import STRETCHES_PER_PAIR
 from simart_pipeline.ckm.outdoor import outdoor_fraction
 from simart_pipeline.ckm.shoot_bounce import (DIRECTION_QUANTUM, Q_BITS, Q_OFFSET, Grid, Tracer,
                                               grid_from_centres)
@@ -112,6 +113,7 @@ class OnePassMoments(CellMoments):
     outdoor_fraction: np.ndarray | None = None
     masked: np.ndarray | None = None  # [num_heights, ny, nx] bool: indoor or too little outdoor area
     num_rays: int = 0                 # rays of the pass (0: a merge of passes)
+    second_pass: dict | None = None   # the diffraction second pass on undersampled cells (one_pass_moments)
 
     def layers(self) -> dict[str, np.ndarray]:
         """:func:`layers_from_moments` with this run's ``min_count_for_spread`` and
@@ -145,10 +147,14 @@ class _Accumulator:
         self.ant = ant_positions_m
         self.rot = tx_rotation
         self.k = 2 * np.pi / wavelength_m
+        self.stretch_keys: list[np.ndarray] = []  # distinct (cell << 32 | stretch) of tagged deposits
 
     def __call__(self, dep: dict[str, np.ndarray], line_of_sight: bool) -> None:
         m, n = self.m, len(self.m.power)
         cell = dep["cell"].astype(np.int64)
+        if "stretch" in dep:
+            self.stretch_keys.append(pd.unique((cell.astype(np.uint64) << np.uint64(32))
+                                               | dep["stretch"].astype(np.uint64)))
         p = dep["power"].astype(np.float64)
         m.power += np.bincount(cell, p, n)
         m.power_sq += np.bincount(cell, p * p, n)
@@ -158,9 +164,9 @@ class _Accumulator:
         tau = dep["dist"].astype(np.float64) / SPEED_OF_LIGHT_MPS
         np.minimum.at(m.min_delay_s, cell, tau)
         dtau = tau - m.tau0_s[cell]
-        pd = p * dtau
-        m.p_excess_delay_s += np.bincount(cell, pd, n)
-        m.p_excess_delay2_s2 += np.bincount(cell, pd * dtau, n)
+        p_dtau = p * dtau
+        m.p_excess_delay_s += np.bincount(cell, p_dtau, n)
+        m.p_excess_delay2_s2 += np.bincount(cell, p_dtau * dtau, n)
         for k in range(4):
             m.p_cos[:, k] += np.bincount(cell, p * dep[f"cos{k}"], n)
             m.p_sin[:, k] += np.bincount(cell, p * dep[f"sin{k}"], n)
@@ -187,6 +193,31 @@ class _Accumulator:
         first = np.flatnonzero(np.r_[True, g_cell[1:] != g_cell[:-1]])
         weights = sparse.csr_matrix((pg, inverse, np.r_[first, len(g_cell)]), shape=(len(first), len(keys)))
         self.m.beam_power[g_cell[first]] += weights @ gains
+
+    def stretches_into(self, cells: np.ndarray) -> np.ndarray:
+        """The stretches of edge (DiffractionSampler tags) whose diffracted rays reached any of the
+        flat ``cells`` (a lookup per key: sorting every key costs seconds on a city grid)."""
+        if not self.stretch_keys or not len(cells):
+            return np.zeros(0, np.int64)
+        chosen = np.zeros(len(self.m.power), bool)
+        chosen[cells] = True
+        into = [k[chosen[(k >> np.uint64(32)).astype(np.int64)]] for k in self.stretch_keys]
+        return np.unique((np.concatenate(into) & np.uint64(0xFFFFFFFF)).astype(np.int64))
+
+    def replace(self, cells: np.ndarray, old: CellMoments, new: CellMoments) -> None:
+        """In the flat ``cells``: take out what ``old`` added (the same deposits again) and add
+        ``new`` instead (sums; float64 leaves about 1e-16 of the old part, clipped at zero). The
+        earliest delay is the smaller of this and ``new``'s (both sample the same paths)."""
+        m = self.m
+        for f in ("power", "power_sq", "los_power", "p_excess_delay_s", "p_excess_delay2_s2"):
+            a = getattr(m, f)
+            a[cells] += getattr(new, f)[cells] - getattr(old, f)[cells]
+        for f in ("p_cos", "p_sin") + (("beam_power",) if m.beam_power is not None else ()):
+            getattr(m, f)[cells] += getattr(new, f)[cells] - getattr(old, f)[cells]
+        for f in ("power", "power_sq", "los_power") + (("beam_power",) if m.beam_power is not None else ()):
+            np.maximum(getattr(m, f), 0.0, out=getattr(m, f))
+        m.count[cells] += new.count[cells] - old.count[cells]
+        m.min_delay_s[cells] = np.minimum(m.min_delay_s[cells], new.min_delay_s[cells])
 
     def moments(self) -> CellMoments:
         s = self.shape
@@ -274,7 +305,8 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                      refraction: bool = False, diffraction: bool = False, edge_diffraction: bool = False,
                      diffuse_reflection: bool = False, diffraction_samples: int | None = None,
                      max_footprint_cells: float = DEFAULT_MAX_FOOTPRINT_CELLS,
-                     solids: Solids | None = None, diffraction_with_reflections: bool = True) -> OnePassMoments:
+                     solids: Solids | None = None, diffraction_with_reflections: bool = True,
+                     diffraction_resample_factor: int = 1) -> OnePassMoments:
     """Per-cell power moments of one transmitter over a grid, from one shoot-and-bounce pass.
 
     :param radio: :class:`simart_pipeline.radio.tracer.RadioScene` (mesh, materials of its
@@ -318,6 +350,12 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         the wedge (depth >= 2) and specular reflections after it, up to ``max_depth``; False:
         RadioMapSolver's diffraction alone (transmitter, wedge, grid plane: nothing before or
         after it), to compare the two like for like
+    :param diffraction_resample_factor: a second pass on undersampled cells (1: none): where a
+        cell outside the mask has at least one ray hit but fewer than ``min_hits_for_power`` (or an
+        effective count below ``min_effective_hits_for_power``), the (source, wedge) pairs whose
+        diffracted rays reached it are sampled again with this many times their samples, and in
+        those cells their first-pass part is replaced by the finer one
+        (:func:`_resample_undersampled`); ``second_pass`` of the result says what it did
     :return: :class:`OnePassMoments` of grid shape ``[num_heights, ny, nx]``
     """
     from simart_pipeline import engine
@@ -355,6 +393,17 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
     reflections_before = 1 if specular_reflection and depth >= 2 and diffraction_with_reflections else 0
     if with_diffraction:  # the lattice rays' hits name the lit wedges: collected as they are traced
         tracer.collect_lit(pairs=bool(reflections_before))
+    masked = frac < min_outdoor_fraction
+    if indoor is not None:
+        try:
+            masked |= np.broadcast_to(np.asarray(indoor, bool), grid.shape)
+        except ValueError:
+            raise ValueError(f"indoor: shape {np.shape(indoor)} does not broadcast to the grid "
+                             f"[num_heights, ny, nx] = {list(grid.shape)}") from None
+    resample = int(diffraction_resample_factor)
+    if resample < 1:
+        raise ValueError(f"diffraction_resample_factor must be >= 1, got {diffraction_resample_factor}")
+    wedges = None
     with _InOrderWorker(acc) as sink:
         for start in range(0, int(num_rays), int(batch_rays)):
             tracer.trace(start, min(start + int(batch_rays), int(num_rays)), sink)
@@ -369,15 +418,14 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                                         reflections_before=reflections_before)
             wedges.find_wedges(int(num_rays), int(batch_rays))
             wedges.trace(int(DIRECT_SAMPLES_PER_RAY * num_rays if diffraction_samples is None else diffraction_samples),
-                         SAMPLES_PER_BATCH_RAY * int(batch_rays), sink)
+                         SAMPLES_PER_BATCH_RAY * int(batch_rays), sink, tag_stretches=resample > 1)
+    second_pass = None
+    if wedges is not None and resample > 1:
+        second_pass = _resample_undersampled(
+            acc, wedges, resample, masked.ravel(), frac.ravel(), int(min_hits_for_power),
+            float(min_effective_hits_for_power), SAMPLES_PER_BATCH_RAY * int(batch_rays),
+            lambda: _Accumulator(grid, tx_position_m, codebook, ant, rot, radio.wavelength_m))
     m = acc.moments()
-    masked = frac < min_outdoor_fraction
-    if indoor is not None:
-        try:
-            masked |= np.broadcast_to(np.asarray(indoor, bool), grid.shape)
-        except ValueError:
-            raise ValueError(f"indoor: shape {np.shape(indoor)} does not broadcast to the grid "
-                             f"[num_heights, ny, nx] = {list(grid.shape)}") from None
     scale = np.where(masked, 0.0, 1.0 / np.maximum(frac, 1e-12))
     for f in ("power", "los_power", "p_excess_delay_s", "p_excess_delay2_s2"):
         setattr(m, f, getattr(m, f) * scale)
@@ -392,7 +440,42 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                           min_count_for_power=int(min_hits_for_power),
                           min_effective_count_for_power=float(min_effective_hits_for_power),
                           outdoor_fraction=frac, masked=masked,
-                          num_rays=int(num_rays))
+                          num_rays=int(num_rays), second_pass=second_pass)
+
+
+def _undersampled_cells(acc: _Accumulator, masked, frac, min_hits: int, min_effective: float) -> np.ndarray:
+    """Flat cells outside the mask with a ray hit but too few for a path gain (the layers' rule,
+    :func:`too_few_for_power`, on the accumulator's sums: the outdoor share scales power and
+    power squared alike, the effective count not)."""
+    few = too_few_for_power(acc.m, min_hits, min_effective)
+    return np.flatnonzero((acc.m.count >= 1) & few & ~masked & (frac > 0))
+
+
+def _resample_undersampled(acc: _Accumulator, wedges, factor: int, masked, frac, min_hits: int,
+                           min_effective: float, batch: int, new_accumulator) -> dict:
+    """The second pass of ``one_pass_moments(diffraction_resample_factor=factor)``: the cells
+    left with too few hits for a path gain (:func:`_undersampled_cells`), the stretches of edge
+    whose diffracted rays reached them (deposits tagged in the first pass,
+    :meth:`DiffractionSampler.resample`), those stretches' first-pass samples traced again (the
+    same rays, bit for bit) and ``factor`` times as many new ones; in the undersampled cells the
+    first are taken out and the new ones put in. Each is an unbiased estimate of the stretches'
+    part, and the new one is independent of the choice of cells, so the swap keeps the estimator
+    unbiased. A new sample's tube is ``1 / factor`` of a first-pass one's: where footprints are
+    smaller than a cell the cell gets about ``factor`` times the hits; where they are wider (far
+    from the edge) about the same hits from narrower footprints, i.e. less smoothing. Cells whose
+    few hits are not diffracted (a grazing reflected tube) keep them. Returns what it did."""
+    cells = _undersampled_cells(acc, masked, frac, min_hits, min_effective)
+    stretches = acc.stretches_into(cells)
+    out = {"factor": int(factor), "undersampled_cells": int(len(cells)), "stretches": int(len(stretches)),
+           "pairs": int(len(np.unique(stretches // STRETCHES_PER_PAIR))), "new_samples": 0}
+    if not len(stretches):
+        return out
+    replay, finer = new_accumulator(), new_accumulator()
+    with _InOrderWorker(replay) as replay_sink, _InOrderWorker(finer) as finer_sink:
+        out["new_samples"] = wedges.resample(stretches, factor, batch, replay_sink, finer_sink)
+    acc.replace(cells, replay.m, finer.m)
+    out["still_undersampled"] = int(len(_undersampled_cells(acc, masked, frac, min_hits, min_effective)))
+    return out
 
 
 def undersampled_fraction(m: OnePassMoments) -> float:

@@ -61,6 +61,10 @@ _SPAWN_EPSILON = 89.0 * 2.0**-24  # Mitsuba's RayEpsilon for float32
 _DRAW_EVENT, _DRAW_DIR1, _DRAW_DIR2, _DRAW_LOBE = range(4)
 _RNG_SEED = 0x2545F491
 _TUBE = ("tube_c", "tube_l0")  # a diffracted ray's own ray tube (Tracer._footprint)
+# carried unchanged through every interaction: the tube, and the stretch of edge a diffracted ray
+# came from, which its deposits report when the sampler tags them (the second pass on
+# undersampled cells, one_pass)
+_CARRIED = _TUBE + ("stretch",)
 
 
 @dataclass(frozen=True)
@@ -568,6 +572,8 @@ class Tracer:
             power *= weight
         cell = cell_offset + mi.UInt32(row) * g["nx_int"] + mi.UInt32(col)
         out = dict(cell=cell, power=power, dist=dist)
+        if "stretch" in take:
+            out["stretch"] = take["stretch"]
         out.update(direction_terms(d_c, d_dep, self.rot, self.with_beams))
         dr.eval(*out.values())
         return {k: v.numpy() for k, v in out.items()}
@@ -670,7 +676,7 @@ class Tracer:
             e_re=spec * (a_r * e_s + b_r * e_pr), e_im=spec * (a_i * e_s + b_i * e_pr),
             length=st["length"] + t,
             **{k: st[k] - 2.0 * dr.dot(n, st[k]) * n for k in ("m0", "m1", "m2")},
-            **{k: st[k] for k in _TUBE if k in st})
+            **{k: st[k] for k in _CARRIED if k in st})
         return _compact(dr, new, keep)
 
     def _uniform(self, idx, depth: int, purpose: int):
@@ -789,7 +795,7 @@ class Tracer:
             m = [dr.select(diff, dk * ko, mk) for dk, mk in zip(dep, m)]
             anchor = dr.select(diff, length, anchor)
         new = dict(o=new_o, d=new_d, e_re=new_re, e_im=new_im, length=length, m0=m[0], m1=m[1], m2=m[2],
-                   idx=st["idx"], anchor=anchor, **{k: st[k] for k in _TUBE if k in st})
+                   idx=st["idx"], anchor=anchor, **{k: st[k] for k in _CARRIED if k in st})
         return _compact(dr, new, alive)
 
     def trace(self, start: int, stop: int, sink) -> None:
