@@ -49,6 +49,11 @@ time; at one sample per ray (the default since) p95 3.9 dB in the time two took 
 a smoothing at the scale of the ray spacing (a kernel density estimate): structure finer than
 that, which the rays cannot resolve either, is blurred.
 
+With ``diffraction_resample_factor`` f > 1 a second pass aims diffraction samples at the cells
+left with too few hits: the stretches of edge whose diffracted rays reached them are traced again
+exactly (taken out of those cells) and with f times the samples (put in), an unbiased swap
+(:func:`_resample_undersampled`; off by default, docs/ckm-one-pass.md "Session 15" says why).
+
 Cells are masked (zero moments) where the caller says ``indoor`` or where less than
 ``min_outdoor_fraction`` of their area is outside buildings; the others have their sums divided by
 that share. Spreads and mean angles need ``min_hits_for_spread`` ray hits
