@@ -308,7 +308,10 @@ def _set_result(mechanisms: str, seed: int = 0) -> dict:
         r["against_converged_map"] = {
             "diffraction_samples_factor": 16, "converged_map_s": 9.0,
             "this_map": cs.map_agreement(np.array([-90.5, -100.0, -120.0, np.nan]), truth),
-            "point_deposits_at_default_samples": cs.map_agreement(np.array([-94.0, np.nan, np.nan, -80.0]), truth)}
+            "point_deposits_at_default_samples": cs.map_agreement(np.array([-94.0, np.nan, np.nan, -80.0]), truth),
+            # the second pass (a stand-in solver): it gives the last cell a value, 1 dB off the converged map
+            "second_pass": cs.second_pass_front(_second_pass_solver, 10, np.array([-90.5, -100.0, -120.0, np.nan]),
+                                                np.ones(4, bool), truth, 2.0)}
     if mechanisms in cs.SWEEP_SETS:
         point = {"rays": 10**5, "warm_s": 0.1, "first_call_s": 0.2, "coverage_pct": 50.0, "covered_of_reached_pct": 90.0,
                  "vs_centre": cs._curve_point(r["errors_vs_centre"]), "vs_3x3": cs._curve_point(r["errors_vs_3x3_points"])}
@@ -318,6 +321,18 @@ def _set_result(mechanisms: str, seed: int = 0) -> dict:
     if mechanisms in cs.CONVERGED_REFERENCE_SETS:
         r["targets_met_vs_converged_reference"] = cs.targets_vs_converged(r, mechanisms)
     return r
+
+
+def _second_pass_solver(num_rays, diffraction_resample_factor):
+    """A stand-in for run_set's one_pass: a map whose second pass fills the fourth cell."""
+    class Moments:
+        second_pass = {"factor": diffraction_resample_factor, "undersampled_cells": 775, "stretches": 881,
+                       "pairs": 228, "new_samples": 559076, "still_undersampled": 202}
+
+        def layers(self):
+            return {"path_gain_db": np.array([[-90.5, -100.0, -120.0, -81.0]])}
+
+    return lambda: Moments()
 
 
 def test_ckm_solver_targets_and_report_cover_every_mechanism_set(tmp_path):
@@ -362,6 +377,11 @@ def test_ckm_solver_targets_and_report_cover_every_mechanism_set(tmp_path):
     assert "The same, the accuracy judged against the converged reference" in md
     # the map against the converged one: both cover 2 cells, |diff| 0.5 and 0 dB; points 1 cell, 4 / 0 dB
     assert "| canyon | diffraction | 16 | 9.0 | 3 / 3 / 2 | 0.25 / 0.475 | 2 | 2 / 3.8 |" in md
+    # the second pass's front: per factor, the cell it fills (1 dB off) and the whole map (0.5, 0, 1 dB)
+    front = sets["diffraction"]["against_converged_map"]["second_pass"]
+    assert [p["factor"] for p in front] == list(cs.SECOND_PASS_FACTORS) and front[0]["cells_valued"] == 4
+    assert "## Second pass on undersampled cells" in md
+    assert md.count("| 775 | 881 | 559076 | 202 | 1 | 1 / 1 | 0.5 / 0.95 |") == len(cs.SECOND_PASS_FACTORS)
     json.dumps(results)  # what main writes
     curves = {f"canyon {m}": r["rays_vs_error"] for m, r in sets.items() if "rays_vs_error" in r}
     assert cs.write_rays_vs_error_plot(curves, tmp_path / "p.png").stat().st_size > 0
