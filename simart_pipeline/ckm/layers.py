@@ -125,9 +125,11 @@ def reference_moments(radio, cfg: SceneConfig, points: np.ndarray, weights: np.n
 
 
 def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, tx_ant_positions_m
-                 ) -> tuple[mom.CellMoments, list[int]]:
+                 ) -> tuple[mom.CellMoments, list[int], list[dict | None]]:
     """One shoot-and-bounce pass per base station over the tile's planes (more where
-    ``ckm.adaptive_max_rays`` asks): moments ``[B, H, y, x]`` and the rays each station's pass used."""
+    ``ckm.adaptive_max_rays`` asks): moments ``[B, H, y, x]``, the rays each station's pass used
+    and what each one's second pass on undersampled cells did (None: none,
+    ``ckm.diffraction_resample_factor``)."""
     from simart_pipeline.ckm.one_pass import adaptive_one_pass_moments
     from simart_pipeline.ckm.outdoor import radio_solids
 
@@ -155,7 +157,7 @@ def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, t
     for f in mom.CellMoments.__dataclass_fields__:
         vals = [getattr(m, f) for m in per_bs]
         stacked[f] = None if vals[0] is None else np.stack(vals)
-    return mom.CellMoments(**stacked), [m.num_rays for m in per_bs]
+    return mom.CellMoments(**stacked), [m.num_rays for m in per_bs], [m.second_pass for m in per_bs]
 
 
 def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_dir=None,
@@ -184,7 +186,7 @@ def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_
             getattr(m, f)[:, traced] = getattr(mt, f)
         coherent[:, traced] = coh
     elif n_traced:
-        m, rays_per_bs = fast_moments(radio, cfg, grid, weights, tx_ant)
+        m, rays_per_bs, second_pass = fast_moments(radio, cfg, grid, weights, tx_ant)
         coherent[:] = np.nan
     tx = np.array([b.position_m for b in cfg.base_stations], np.float64)
     centre = np.stack([xx, yy, hh], -1)
@@ -209,6 +211,8 @@ def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_
                     in_scene_tiling=int(tile_slices(cfg.ckm, tile) is not None))
     if fast and n_traced:
         ds.attrs["rays_per_bs"] = rays_per_bs  # the adaptive rule may have raised ckm.num_rays
+        if any(second_pass):  # ckm.diffraction_resample_factor: what each station's second pass did
+            ds.attrs["second_pass_per_bs"] = second_pass
     return ds
 
 
