@@ -357,7 +357,7 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         after it), to compare the two like for like
     :param diffraction_resample_factor: a second pass on undersampled cells (1: none): where a
         cell outside the mask has at least one ray hit but fewer than ``min_hits_for_power`` (or an
-        effective count below ``min_effective_hits_for_power``), the (source, wedge) pairs whose
+        effective count below ``min_effective_hits_for_power``), the stretches of edge whose
         diffracted rays reached it are sampled again with this many times their samples, and in
         those cells their first-pass part is replaced by the finer one
         (:func:`_resample_undersampled`); ``second_pass`` of the result says what it did
