@@ -164,7 +164,9 @@ REFERENCE_CHECK_CELLS = (3, 10)  # (quick, full)
 REFERENCE_CHECK_SAMPLES = 10**7
 # A converged reference: with diffraction PathSolver finds reflection-diffraction-reflection chains
 # only with ~1e8 samples (two Munich cells: the 1e6 / 1e7 references 73 and 40 dB below the
-# one-pass, 1e8 within 0.1 dB of it). The centres of a random subset of the compared cells (the
+# one-pass, 1e8 within 0.1 dB of it; not everywhere: at a Munich cell whose chains run from corners
+# 250-320 m away, R-D-R and D-R-R still grew 7-12 dB from 1e8 to 5e8 samples, docs/ckm-one-pass.md
+# "Session 15"). The centres of a random subset of the compared cells (the
 # first CONVERGED_REFERENCE_CELLS of the random order) are traced at CONVERGED_REFERENCE_SAMPLES with
 # Sionna's default (non-deterministic) candidate generator: the deterministic one holds 48 B x depth
 # x samples per receiver (14 GB at 1e8) and costs 4 s per receiver at 1e7 on Munich, the default
