@@ -904,10 +904,10 @@ def test_lit_wedges_from_the_tracer_hits_equal_those_of_rays_cast_again(monkeypa
 
 def test_second_pass_replaces_the_diffracted_part_of_undersampled_cells_by_finer_samples(tmp_path, monkeypatch):
     """diffraction_resample_factor: the cells left with 1 to 4 ray hits (below
-    min_hits_for_power) behind a block get the diffracted part of the (source, wedge) pairs that
+    min_hits_for_power) behind a block get the diffracted part of the stretches of edge that
     reached them again from 4x the samples. Cells with enough hits keep their moments bit for
     bit; in the undersampled ones the gain moves towards a map of 64x the samples (p50 error
-    measured 2.5 -> 0.7 dB) and more cells get a value. With the new samples' lattice equal to
+    measured 2.5 -> 0.6 dB) and more cells get a value. With the new samples' lattice equal to
     the first pass's (factor 1 forced into the second pass) the replayed samples and the new ones
     are the same rays, so taking one out and putting the other in changes no bit anywhere."""
     radio = RadioScene.from_config(_box_and_ground_scene(tmp_path, False), _cfg())

@@ -394,7 +394,7 @@ class DiffractionSampler:
                 reps = np.maximum(np.minimum(ends[span], stop) - np.maximum(ends[span] - cnt[span], start), 0)
                 s = mi.UInt32(np.repeat(span, reps).astype(np.uint32))
                 lattice = self._lattice(start, stop, s, seg, int(factor), tag_stretches)
-                self._trace_batch(lattice["pair"], lattice, o, sink)
+                self._trace_batch(lattice, o, sink)
 
     def _lattice(self, start: int, stop: int, s, seg: dict, factor: int, tag_stretches: bool = False) -> dict:
         """The rank-1 lattice points of samples ``start..stop-1`` of the segments ``s``
@@ -496,12 +496,12 @@ class DiffractionSampler:
         return dict(wedges=wedges, q=q, ne=ne, ok=ok, e_in=e_in, ki=ki, s_prime=s_prime, dep=dep, ko=ko,
                     measure=measure)
 
-    def _trace_batch(self, w_index, lattice: dict, order: int, sink) -> None:
+    def _trace_batch(self, lattice: dict, order: int, sink) -> None:
         dr, mi = self.dr, self.mi
         from sionna.rt.constants import MIN_SEGMENT_LENGTH
         from sionna.rt.radio_map_solvers.radio_map_solver import RadioMapSolver
 
-        g = self._geometry(w_index, lattice["u"], lattice["v"], order)
+        g = self._geometry(lattice["pair"], lattice["u"], lattice["v"], order)
         wedges, q, ne, ok, e_in, ki, s_prime, dep, ko, measure = (
             g[k] for k in ("wedges", "q", "ne", "ok", "e_in", "ki", "s_prime", "dep", "ko", "measure"))
         # leave the edge by a millimetre into the exterior (ne + ko points there for any ko on the

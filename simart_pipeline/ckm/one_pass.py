@@ -214,14 +214,12 @@ class _Accumulator:
         ``new`` instead (sums; float64 leaves about 1e-16 of the old part, clipped at zero). The
         earliest delay is the smaller of this and ``new``'s (both sample the same paths)."""
         m = self.m
-        for f in ("power", "power_sq", "los_power", "p_excess_delay_s", "p_excess_delay2_s2"):
-            a = getattr(m, f)
-            a[cells] += getattr(new, f)[cells] - getattr(old, f)[cells]
-        for f in ("p_cos", "p_sin") + (("beam_power",) if m.beam_power is not None else ()):
+        beams = ("beam_power",) if m.beam_power is not None else ()
+        for f in ("power", "power_sq", "los_power", "p_excess_delay_s", "p_excess_delay2_s2", "p_cos", "p_sin",
+                  "count") + beams:
             getattr(m, f)[cells] += getattr(new, f)[cells] - getattr(old, f)[cells]
-        for f in ("power", "power_sq", "los_power") + (("beam_power",) if m.beam_power is not None else ()):
+        for f in ("power", "power_sq", "los_power") + beams:
             np.maximum(getattr(m, f), 0.0, out=getattr(m, f))
-        m.count[cells] += new.count[cells] - old.count[cells]
         m.min_delay_s[cells] = np.minimum(m.min_delay_s[cells], new.min_delay_s[cells])
 
     def moments(self) -> CellMoments:

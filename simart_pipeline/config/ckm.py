@@ -65,10 +65,10 @@ class Ckm(_Model):
     # A targeted second pass (one_pass.one_pass_moments): the cells a few diffracted rays reach get
     # the diffracted part of the stretches of edge that reach them again from this many times the
     # samples. Off by default, as the run-time/error front chose (docs/ckm-one-pass.md, "Session
-    # 15"): on Munich (2 m cells, 1e7 rays, footprints on) 4 gives 213 more cells a value (2 % of
-    # those reached) for 9 % more time, but those cells sit at the fringe of diffracted wavefronts
-    # and stay 11-17 dB off at p95 (the map's other cells: 3.9); with point deposits
-    # (max_footprint_cells 1) it takes a few-hit cell from 2.5 to 0.7 dB (p50).
+    # 15"; benchmarks.ckm_solver): on Munich (2 m cells, 1e7 rays, footprints on) 4 and 8 give 217
+    # and 294 more cells a value (2-3 % of those reached) for 15-18 % more time, but those cells sit
+    # at the fringe of diffracted wavefronts and stay 9-17 dB off at p95 (the map's other cells:
+    # 3.9); with point deposits (max_footprint_cells 1) it takes a few-hit cell from 2.5 to 0.6 dB (p50).
     diffraction_resample_factor: int = Field(
         1, ge=1, le=64, description="fast mode, with diffraction: cells with a ray hit but fewer than "
         "min_hits_for_power get the diffracted part of the stretches of edge that reached them again from this "
