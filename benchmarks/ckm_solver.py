@@ -30,7 +30,7 @@ Per scene and set:
   the share where the one-pass layers hold a value (at least ``ckm.min_hits_for_power`` ray hits);
   for the cells it misses, PathSolver's power per interaction sequence (``R`` specular, ``S``
   diffuse, ``T`` refraction, ``D`` diffraction, in path order) and the share of it in paths the
-  one-pass does not trace (an interaction before the diffraction);
+  one-pass does not trace (two interactions, or a diffuse or refracting one, before the diffraction);
 - **errors** ``|one-pass - PathSolver|`` over the sampled cells where both hold a value: p50 / p95
   of path gain (dB), ToA, RMS delay spread (ns), the four angular spreads (deg), LoS and best-beam
   agreement (%), and top-3 agreement (PathSolver's best beam among the one-pass's three best), against
@@ -430,12 +430,16 @@ def interaction_shares(interaction: np.ndarray, power: np.ndarray, valid: np.nda
     ``power`` and ``valid`` [rx, path], ``cells`` bool [num_cells]. Per sequence: ``share_pct``, the
     mean over the chosen cells of its share of the cell's power, and ``paths``, its valid paths
     there; the ``top`` largest shares, largest first. ``untraced_pct``: p50 / p95 / mean over
-    those cells of the power share of paths with an interaction before a diffraction (the one-pass
-    solver starts its diffracted rays at the transmitter)."""
+    those cells of the power share of the paths the one-pass solver does not trace: a diffraction
+    after two or more interactions, or after a diffuse reflection or a refraction (its diffracted
+    rays start at the transmitter or at its image in one specular reflector)."""
     depth = interaction.shape[1]
     inter = interaction.astype(np.int64)
     key = sum(inter[:, k] << (4 * k) for k in range(depth))  # [rx, path]
-    late_diffraction = (inter[:, 1:] == int(InteractionKind.DIFFRACTION)).any(1)  # [rx, path]
+    is_d = inter == int(InteractionKind.DIFFRACTION)
+    late_diffraction = is_d[:, 2:].any(1)  # [rx, path]
+    if depth >= 2:
+        late_diffraction |= is_d[:, 1] & (inter[:, 0] != int(InteractionKind.SPECULAR))
 
     def per_cell(v):
         return v.reshape(-1, pool * v.shape[1])[cells]
@@ -1010,8 +1014,8 @@ def _coverage_lines(results: dict) -> list[str]:
              "a few ray hits below min_hits_for_power); extra: the one-pass holds a value where PathSolver "
              "finds none. PathSolver's power per interaction sequence (R specular, S diffuse, T refraction, "
              "D diffraction, in path order; mean over the cells of each sequence's share of the cell's power) "
-             "and the share in paths with an interaction before the diffraction, which the one-pass does not "
-             "trace (p50 / p95, mean).", "",
+             "and the share in paths the one-pass does not trace: a diffraction after two interactions, or after a "
+             "diffuse reflection or a refraction (p50 / p95, mean).", "",
              "| scene | set | sampled | reached (centre) | covered % (centre) | missed (few hits) | extra | "
              "missed cells' PathSolver gain dB p50 / p95 | untraced power % in reached cells | in missed cells | "
              "sequences in missed cells | sequences in reached cells |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]

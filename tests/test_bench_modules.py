@@ -202,19 +202,21 @@ def test_sequence_names_read_the_bounces_in_path_order():
 def test_interaction_shares_known_answer():
     from benchmarks.ckm_solver import interaction_shares
 
-    # two cells of two receivers each, two path slots, depth 2: [rx, depth, path]
-    inter = np.array([[[0, 8], [0, 0]],    # cell 0: LoS, D
-                      [[1, 0], [8, 0]],    # cell 0: R-D, invalid
-                      [[8, 0], [1, 0]],    # cell 1: D-R, invalid
-                      [[0, 0], [0, 0]]], np.uint8)  # cell 1: nothing
-    power = np.array([[2.0, 1.0], [1.0, 5.0], [4.0, 9.0], [0.0, 0.0]])
-    valid = np.array([[True, True], [True, False], [True, False], [False, False]])
+    # two cells of two receivers each, two path slots, depth 3: [rx, depth, path]
+    inter = np.array([[[0, 8], [0, 0], [0, 0]],    # cell 0: LoS, D
+                      [[1, 1], [8, 1], [0, 8]],    # cell 0: R-D (traced), R-R-D (not)
+                      [[8, 2], [1, 8], [0, 0]],    # cell 1: D-R, S-D (not traced)
+                      [[0, 0], [0, 0], [0, 0]]], np.uint8)  # cell 1: nothing
+    power = np.array([[2.0, 1.0], [1.0, 4.0], [4.0, 4.0], [0.0, 0.0]])
+    valid = np.array([[True, True], [True, True], [True, True], [False, False]])
     r = interaction_shares(inter, power, valid, pool=2, cells=np.array([True, True]))
-    # cell 0: LoS 2/4, D 1/4, R-D 1/4 (untraced); cell 1: D-R all of it; means over the two cells
+    # cell 0: LoS 2/8, D 1/8, R-D 1/8, R-R-D 4/8 (untraced); cell 1: D-R 1/2, S-D 1/2 (untraced);
+    # means over the two cells
     assert r["cells"] == 2
-    assert r["sequences"] == {"D-R": {"share_pct": 50.0, "paths": 1}, "LoS": {"share_pct": 25.0, "paths": 1},
-                              "D": {"share_pct": 12.5, "paths": 1}, "R-D": {"share_pct": 12.5, "paths": 1}}
-    assert r["untraced_pct"]["mean"] == 12.5 and r["untraced_pct"]["n"] == 2
+    assert r["sequences"] == {"R-R-D": {"share_pct": 25.0, "paths": 1}, "D-R": {"share_pct": 25.0, "paths": 1},
+                              "S-D": {"share_pct": 25.0, "paths": 1}, "LoS": {"share_pct": 12.5, "paths": 1},
+                              "D": {"share_pct": 6.25, "paths": 1}, "R-D": {"share_pct": 6.25, "paths": 1}}
+    assert r["untraced_pct"]["mean"] == 50.0 and r["untraced_pct"]["n"] == 2
     none = interaction_shares(inter, power, valid, pool=2, cells=np.array([False, False]))
     assert none["cells"] == 0 and none["sequences"] == {}
 
