@@ -1,15 +1,17 @@
-"""PathSolver 2.2 gives one (diffraction, reflection) path different powers at different max_depth.
+"""PathSolver 2.2 gave one (diffraction, reflection) path different powers at different max_depth.
 
     python benchmarks/pathsolver_depth_check.py
 
 Sionna's street canyon reduced to one building (``building_4``) on a metal floor, iso V antennas
 at 3.5 GHz, transmitter (-30, 5, 20) m, receiver (29, -25, 1.5) m, diffraction on, the project's
 deterministic PathSolver call (:meth:`simart_pipeline.radio.tracer.RadioScene.trace`). Prints every
-path at ``max_depth`` 2 and 3 with its interaction sequence, power and vertices: the
-(diffraction, reflection) paths keep their vertices and lose 7-8 dB at depth 3, the others keep
-their power (depths 4 and 5 give what 3 gives). Image theory (tests/test_one_pass.py) and the
-one-pass solver side with depth 2.
-docs/ckm-one-pass.md (Diffraction) says what this means for comparisons.
+path at ``max_depth`` 2 and 3 with its interaction sequence, power and vertices, with Sionna RT
+2.2.0's own ``FieldCalculator._diffraction_compute_s_s_prime`` and with the project's correction
+(:mod:`simart_pipeline.sionna_fixes`, which :func:`simart_pipeline.engine.init` installs). With
+Sionna's own, the (diffraction, reflection) paths keep their vertices and lose 7-8 dB at depth 3
+(its walk adds a segment to the stale vertex of the first empty interaction, which a depth-2 walk
+never reaches); with the correction every path has one power at both depths, the one image theory
+gives (tests/test_radio.py). docs/ckm-one-pass.md (Diffraction) says what this meant for comparisons.
 """
 
 from __future__ import annotations
@@ -42,10 +44,19 @@ def paths_at(depth: int) -> list[tuple[tuple[int, ...], float, list]]:
 
 
 def main() -> None:
-    for depth in (2, 3):
-        print(f"max_depth {depth}  (interactions: 1 specular, 8 diffraction)")
-        for seq, power_db, vertices in paths_at(depth):
-            print(f"  {str(seq):10s} {power_db:8.1f} dB  {vertices}")
+    from simart_pipeline import engine, sionna_fixes
+
+    engine.init()
+    from sionna.rt.path_solvers.field_calculator import FieldCalculator
+
+    for label, walk in (("Sionna RT's own distances", sionna_fixes.SIONNAS["diffraction_distances"]),
+                        ("corrected (simart_pipeline.sionna_fixes)", sionna_fixes.diffraction_distances)):
+        FieldCalculator._diffraction_compute_s_s_prime = walk
+        for depth in (2, 3):
+            print(f"{label}, max_depth {depth}  (interactions: 1 specular, 8 diffraction)")
+            for seq, power_db, vertices in paths_at(depth):
+                print(f"  {str(seq):10s} {power_db:8.1f} dB  {vertices}")
+    sionna_fixes.apply()
 
 
 if __name__ == "__main__":

@@ -78,6 +78,9 @@ def init() -> str:
             raise
     import sionna.rt  # noqa: F401  (registers Sionna's Mitsuba plugins)
 
+    from simart_pipeline import sionna_fixes  # imports drjit: only once the variant is set
+
+    sionna_fixes.apply()
     return variant
 
 

@@ -719,9 +719,9 @@ def test_diffraction_with_a_metal_ground_obeys_image_theory(tmp_path):
     their incoherent sum equals, without the ground and with the block mirrored below it, the
     diffraction at the receive height plus that at the mirrored height (each path seen from the
     mirrored receiver is one with a ground bounce). The block reaches below the ground so that
-    its bottom edges, which a real ground buries, are not wedges. PathSolver 2.2 gives the
-    (diffraction, reflection) paths of a geometry like this one 8 dB below this identity
-    (docs/ckm-one-pass.md), so the reference here is the closed form, not PathSolver."""
+    its bottom edges, which a real ground buries, are not wedges. The reference is the closed form:
+    Sionna RT 2.2.0's PathSolver gave the (diffraction, reflection) paths of a geometry like this
+    one 8 dB below it (corrected by simart_pipeline.sionna_fixes; tests/test_radio.py)."""
     ground = _block(10.0, 30.0, -20.0, 20.0, -5.0, 40.0)   # its bottom edges hidden below the ground
     mirrored = _block(10.0, 30.0, -20.0, 20.0, -40.0, 40.0)
     with_ground = RadioScene.from_config(_write_scene(tmp_path / "a", {"b": (ground, "concrete"),

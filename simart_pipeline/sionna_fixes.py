@@ -1,0 +1,61 @@
+"""Corrections to Sionna RT that the project applies when it selects the Mitsuba variant
+(:func:`simart_pipeline.engine.init`, the one way to reach Sionna), each with the measurement that
+found it and a test that fails without it.
+
+- **PathSolver's diffraction distances** (Sionna RT 2.2.0,
+  ``FieldCalculator._diffraction_compute_s_s_prime``). The walk over a path's interactions adds
+  the segment to the vertex slot of the first *empty* interaction before it stops, so every path
+  with diffraction that is shorter than ``max_depth`` gets an extra segment to a stale vertex in
+  ``s`` (the unfolded length after the diffraction point, which sets the UTD spreading factor and
+  transition function). A (diffraction, reflection) path is then 7-8 dB too weak at ``max_depth`` 3
+  and right at 2, where the walk ends before an empty slot (``benchmarks/pathsolver_depth_check.py``;
+  docs/ckm-one-pass.md). :func:`diffraction_distances` stops at the empty slot; the rest is Sionna's.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+
+@dr.syntax
+def diffraction_distances(self, paths, src_positions, tgt_positions):
+    """``(s, s')`` per path: the lengths after and before its diffraction point (Sionna's
+    ``_diffraction_compute_s_s_prime`` with the walk stopped at the first empty interaction)."""
+    from sionna.rt.constants import InteractionType
+
+    num_paths = paths.buffer_size
+    s = dr.zeros(mi.Float, num_paths)
+    s_prime = dr.zeros(mi.Float, num_paths)
+    active = dr.full(mi.Bool, True, num_paths)
+    depth = dr.full(mi.UInt, 1, num_paths)
+    max_depth = paths.max_depth
+    prev_vertex = dr.copy(src_positions)
+    post_diffraction = dr.full(mi.Bool, False, num_paths)
+    while dr.hint(active, mode=self.loop_mode):
+        interaction_type = paths.get_interaction_type(depth, active)
+        active &= interaction_type != InteractionType.NONE  # the correction: no segment to an empty slot
+        diffraction = active & (interaction_type == InteractionType.DIFFRACTION)
+        vertex = paths.get_vertex(depth, active)
+        length = dr.norm(vertex - prev_vertex)
+        s[post_diffraction & active] += length
+        s_prime[~post_diffraction & active] += length
+        post_diffraction |= diffraction
+        prev_vertex = dr.select(active, vertex, prev_vertex)
+        depth += 1
+        active &= depth <= max_depth
+    last_segment_length = dr.norm(tgt_positions - prev_vertex)
+    s[post_diffraction] += last_segment_length
+    s_prime[~post_diffraction] += last_segment_length
+    return s, s_prime
+
+
+SIONNAS = {}  # what apply() replaced, by name (tests compare against it)
+
+
+def apply() -> None:
+    """Install the corrections (idempotent)."""
+    from sionna.rt.path_solvers.field_calculator import FieldCalculator
+
+    SIONNAS.setdefault("diffraction_distances", FieldCalculator._diffraction_compute_s_s_prime)
+    FieldCalculator._diffraction_compute_s_s_prime = diffraction_distances
