@@ -10,7 +10,13 @@ corner's shadow, it returns only the roof edge's diffraction. The one-pass solve
 and that corner's field (-111 dB at (79, 21) m, lit-region diffraction where other buildings block
 the line of sight) is what sets the urban scene's gain p95 against PathSolver
 (docs/ckm-one-pass.md, "Session 16"). The geometry is clear (the transmitter sees the diffraction
-point, the point sees the receivers); the cause is not found.
+point, the point sees the receivers); the cause is not found. What is known: Sionna's
+``sample_wedge_diffraction_point`` returns that edge, valid, from the transmitter's hits on the
+south face; yet the candidate generator stores no candidate through it for these receivers (the
+image method is handed none; a larger ``MIN_SPEC_COUNT_SIZE`` changes nothing); and the same
+mesh with its x coordinates rounded to whole metres (the footprint's vertices lie 2-8 mm off them:
+-28.002, -13.997, -14.005, -22.004) does diffract there, as does a clean extrusion of the
+footprint. This script prints the building as built and with its vertices rounded.
 """
 
 from __future__ import annotations
@@ -33,9 +39,38 @@ def main() -> None:
     radio.solver_config = radio.solver_config.model_copy(update={"samples_per_src": 10**6, "max_depth": 1})
     tx = np.array(spec["tx"])
     ori = np.radians([spec["yaw_pitch_deg"][0], spec["yaw_pitch_deg"][1], 0.0])
+    print(f"transmitter {tx.tolist()} m; paths per receiver (D: diffraction point)")
+    print("building_brick as built:")
+    _show(cs, radio, tx, ori)
+    mesh = radio.scene.objects["building_brick"].mi_mesh
+    vertices = np.asarray(mesh.vertex_positions_buffer().numpy(), np.float64).reshape(-1, 3)
+    faces = np.asarray(mesh.faces_buffer().numpy()).reshape(-1, 3)
+    print("its vertices rounded to whole metres:")
+    _show(cs, _scene_of(np.round(vertices), faces, cfg), tx, ori)
+
+
+def _scene_of(vertices, faces, cfg):
+    """A radio scene of one brick mesh (the project's PLY + Sionna XML form), 1e6 samples, depth 1."""
+    import trimesh
+
+    from simart_pipeline.radio import materials
+    from simart_pipeline.radio.tracer import RadioScene
+
+    folder = Path(tempfile.mkdtemp())
+    trimesh.Trimesh(vertices, faces, process=False).export(folder / "b.ply", encoding="binary")
+    (folder / "scene.xml").write_text(
+        '<scene version="2.1.0">' + materials.bsdf_xml("brick", cfg.ofdm.carrier_frequency_hz, 0.2)
+        + '<shape type="ply" id="b"><string name="filename" value="b.ply"/>'
+        '<boolean name="face_normals" value="true"/>'
+        f'<ref id="{materials.bsdf_id("brick")}" name="bsdf"/></shape></scene>')
+    radio = RadioScene.from_config(folder / "scene.xml", cfg)
+    radio.solver_config = radio.solver_config.model_copy(update={"samples_per_src": 10**6, "max_depth": 1})
+    return radio
+
+
+def _show(cs, radio, tx, ori) -> None:
     p = radio.trace(tx[None], ori[None], np.array(RECEIVERS_M), with_vertices=True)
     power = (np.abs(p.a[:, 0]) ** 2).mean(axis=(1, 2))
-    print(f"transmitter {tx.tolist()} m; paths per receiver (D: diffraction point)")
     for j, rx in enumerate(RECEIVERS_M):
         out = []
         for k in np.argsort(-power[j]):
