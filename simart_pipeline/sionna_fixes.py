@@ -10,6 +10,16 @@ found it and a test that fails without it.
   transition function). A (diffraction, reflection) path is then 7-8 dB too weak at ``max_depth`` 3
   and right at 2, where the walk ends before an empty slot (``benchmarks/pathsolver_depth_check.py``;
   docs/ckm-one-pass.md). :func:`diffraction_distances` stops at the empty slot; the rest is Sionna's.
+- **PathSolver's diffraction candidates** (Sionna RT 2.2.0, ``SBCandidateGenerator``). A sampled
+  diffraction point lies exactly on its edge, and the generator tests the target's visibility
+  from it (and spawns the next segment) with an offset along the *hit face's* normal towards the
+  target's side, which can put the origin on the other face's plane: whether the test passes then
+  depends on the vertices' last bits. On the urban scene a lit building corner whose footprint
+  vertices lie millimetres off whole metres never got a candidate (its field, -111.6 dB at a street
+  cell, appeared once the vertices were rounded; ``benchmarks/pathsolver_corner_check.py``).
+  :func:`diffraction_sample_off_the_edge` moves the sampled point 1 mm off the edge along the
+  wedge's exterior bisector, as Sionna's image method does for its own visibility tests; the
+  image method then computes each path's exact diffraction point from the wedge.
 """
 
 from __future__ import annotations
@@ -50,6 +60,30 @@ def diffraction_distances(self, paths, src_positions, tgt_positions):
     return s, s_prime
 
 
+DIFFRACTION_SAMPLE_OFFSET_M = 1e-3  # Sionna's image method offsets its diffraction points by this much
+
+
+def _sample_off_the_edge(sample_radio_material):
+    def diffraction_sample_off_the_edge(self, si, ray_origin, ki_world, sample1, sample2, sample2_diffraction,
+                                        loc_en_inter, diffraction_enabled, edge_diffraction_enabled, active):
+        """Sionna's ``_sample_radio_material``, with a sampled diffraction point moved off its edge
+        along the wedge's exterior bisector (free edges have none: left as they are)."""
+        from sionna.rt.constants import InteractionType
+
+        s, n, wedges = sample_radio_material(self, si, ray_origin, ki_world, sample1, sample2, sample2_diffraction,
+                                             loc_en_inter, diffraction_enabled, edge_diffraction_enabled, active)
+        if diffraction_enabled:
+            # the method leaves the interactions it enabled in si.dp_du.z: exactly DIFFRACTION where
+            # it sampled one
+            sampled = dr.reinterpret_array(mi.UInt, si.dp_du.z) == mi.UInt(InteractionType.DIFFRACTION)
+            bisector = dr.normalize(wedges.n0 + wedges.nn)
+            si.p = dr.select(sampled & (wedges.prim0 != wedges.primn),
+                             si.p + DIFFRACTION_SAMPLE_OFFSET_M * bisector, si.p)
+        return s, n, wedges
+    diffraction_sample_off_the_edge._simart_fix = True
+    return diffraction_sample_off_the_edge
+
+
 SIONNAS = {}  # what apply() replaced, by name (tests compare against it)
 
 
@@ -57,5 +91,10 @@ def apply() -> None:
     """Install the corrections (idempotent)."""
     from sionna.rt.path_solvers.field_calculator import FieldCalculator
 
+    from sionna.rt.path_solvers.sb_candidate_generator import SBCandidateGenerator
+
     SIONNAS.setdefault("diffraction_distances", FieldCalculator._diffraction_compute_s_s_prime)
     FieldCalculator._diffraction_compute_s_s_prime = diffraction_distances
+    SIONNAS.setdefault("sample_radio_material", SBCandidateGenerator._sample_radio_material)
+    if not getattr(SBCandidateGenerator._sample_radio_material, "_simart_fix", False):
+        SBCandidateGenerator._sample_radio_material = _sample_off_the_edge(SIONNAS["sample_radio_material"])

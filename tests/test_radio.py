@@ -480,3 +480,54 @@ def test_a_diffracted_then_reflected_path_keeps_its_power_at_any_max_depth(monke
     # Sionna's own walk: the same path several dB too weak at depth 3
     monkeypatch.setattr(FieldCalculator, "_diffraction_compute_s_s_prime", sionna_fixes.SIONNAS["diffraction_distances"])
     assert paths(3, rx)[strongest] < two[strongest] - 5.0
+
+
+# A courtyard building of the project's urban scene as built from OSM (benchmarks/
+# pathsolver_corner_check.py): its footprint vertices lie millimetres off whole metres.
+_COURTYARD_VERTICES_M = [  # float32 values as loaded, in full: the bug depends on their last bits
+    [-28.002347946166992, -9.99701976776123, 0.0], [-28.002347946166992, -9.99701976776123, 18.0],
+    [-28.002151489257812, 30.00245475769043, 0.0], [-28.002151489257812, 30.00245475769043, 18.0],
+    [-22.00445556640625, 2.0016839504241943, 0.0], [-22.00445556640625, 2.0016839504241943, 18.0],
+    [-22.00438690185547, 20.005338668823242, 0.0], [-22.00438690185547, 20.005338668823242, 18.0],
+    [-14.004820823669434, 20.005313873291016, 0.0], [-14.004820823669434, 20.005313873291016, 18.0],
+    [-13.997424125671387, 2.0016586780548096, 0.0], [-13.997424125671387, 2.0016586780548096, 18.0],
+    [-7.999607563018799, -9.997082710266113, 0.0], [-7.999607563018799, -9.997082710266113, 18.0],
+    [-7.999551773071289, 30.002391815185547, 0.0], [-7.999551773071289, 30.002391815185547, 18.0]]
+_COURTYARD_FACES = [
+    [1, 5, 7], [11, 5, 1], [11, 1, 13], [11, 13, 15], [3, 1, 7], [3, 7, 9], [9, 11, 15], [9, 15, 3], [6, 4, 0],
+    [0, 4, 10], [12, 0, 10], [14, 12, 10], [6, 0, 2], [8, 6, 2], [14, 10, 8], [2, 14, 8], [0, 12, 13],
+    [12, 14, 15], [14, 2, 3], [2, 0, 1], [4, 6, 7], [6, 8, 9], [8, 10, 11], [10, 4, 5], [0, 13, 1], [12, 15, 13],
+    [14, 3, 15], [2, 1, 3], [4, 7, 5], [6, 9, 7], [8, 11, 9], [10, 5, 11]]
+
+
+def test_pathsolver_diffracts_at_a_corner_whatever_the_last_bits_of_its_vertices(tiny_scene, tmp_path, monkeypatch):
+    """A lit building corner at (-8, -10) m, receivers in its shadow and on its lit side behind
+    nothing: PathSolver must diffract there (one path through a point of that vertical edge) with
+    the building as built and with its vertices rounded to whole metres, at the same power. With
+    Sionna RT 2.2.0's own candidate generator (simart_pipeline.sionna_fixes) the corner gets no
+    candidate as built (its visibility test starts on the edge), and the test fails."""
+    from simart_pipeline import sionna_fixes
+    from sionna.rt.path_solvers.sb_candidate_generator import SBCandidateGenerator
+
+    cfg = _cfg(tiny_scene, _iso(diffraction=True, max_depth=1, samples_per_src=1_000_000))
+    tx = np.array([[-60.0, -48.0, 20.0]])
+    rx = np.array([[0.0, 20.0, 1.5], [2.0, 7.3, 1.5], [79.0, 21.0, 1.5]])
+
+    def corner_gain_db(vertices, folder):
+        mesh = trimesh.Trimesh(np.array(vertices), np.array(_COURTYARD_FACES), process=False)
+        radio = RadioScene.from_config(_write_scene(tmp_path / folder, {"b": (mesh, "brick")}, 0.2), cfg)
+        p = radio.trace(tx, np.zeros((1, 3)), rx, with_vertices=True)
+        first = p.vertices_m[:, 0, 0]  # [rx, path, 3]: the diffraction point
+        at_corner = (p.valid[:, 0] & (p.interaction[:, 0, 0] == 8) & (np.abs(first[..., 0] + 8.0) < 0.01)
+                     & (np.abs(first[..., 1] + 10.0) < 0.01))
+        power = np.abs(p.a[:, 0, 0, 0]) ** 2
+        with np.errstate(divide="ignore"):
+            return 10 * np.log10(np.where(at_corner, power, 0.0).sum(-1)), at_corner.sum(-1)
+
+    built, n_built = corner_gain_db(_COURTYARD_VERTICES_M, "built")
+    rounded, n_rounded = corner_gain_db(np.round(_COURTYARD_VERTICES_M), "rounded")
+    assert (n_rounded == 1).all() and (n_built == 1).all(), (n_built, n_rounded)
+    np.testing.assert_allclose(built, rounded, atol=0.1)
+    monkeypatch.setattr(SBCandidateGenerator, "_sample_radio_material", sionna_fixes.SIONNAS["sample_radio_material"])
+    _, n_sionna = corner_gain_db(_COURTYARD_VERTICES_M, "sionna")
+    assert (n_sionna == 0).all(), n_sionna
