@@ -1,22 +1,21 @@
-"""An open lead (session 16): PathSolver 2.2 does not diffract on one vertical corner of the urban scene.
+"""PathSolver 2.2's candidate generator lost a lit corner's diffraction on an OSM building (corrected).
 
     python -m benchmarks.pathsolver_corner_check
 
 The project's urban scene (benchmarks.ckm_solver's ``urban``: its OSM extract, bs0) reduced to
-one building, ``building_brick`` (x -28..-8 m, y -10..30 m, 18 m tall). PathSolver (depth 1,
-diffraction on, 1e6 samples, deterministic) diffracts on its north-west and south-west vertical
-corners, but never on its south-east one at (-8, -10): at (0, 20) and (2, 7.3) m, in that
-corner's shadow, it returns only the roof edge's diffraction. The one-pass solver diffracts there,
-and that corner's field (-111 dB at (79, 21) m, lit-region diffraction where other buildings block
-the line of sight) is what sets the urban scene's gain p95 against PathSolver
-(docs/ckm-one-pass.md, "Session 16"). The geometry is clear (the transmitter sees the diffraction
-point, the point sees the receivers); the cause is not found. What is known: Sionna's
-``sample_wedge_diffraction_point`` returns that edge, valid, from the transmitter's hits on the
-south face; yet the candidate generator stores no candidate through it for these receivers (the
-image method is handed none; a larger ``MIN_SPEC_COUNT_SIZE`` changes nothing); and the same
-mesh with its x coordinates rounded to whole metres (the footprint's vertices lie 2-8 mm off them:
--28.002, -13.997, -14.005, -22.004) does diffract there, as does a clean extrusion of the
-footprint. This script prints the building as built and with its vertices rounded.
+one building, ``building_brick`` (x -28..-8 m, y -10..30 m, 18 m tall, a courtyard), whose
+footprint vertices lie millimetres off whole metres. PathSolver (depth 1, diffraction on, 1e6
+samples, deterministic) with Sionna RT 2.2.0's own candidate generator diffracts on the
+building's north-west and south-west vertical corners and its roof edges, but never on its
+south-east corner at (-8, -10): the generator tests the target's visibility from the sampled
+diffraction point, which lies on the edge, with an offset along the hit face's normal that puts
+it on the other face's plane, and the outcome depends on the vertices' last bits. With the
+vertices rounded to whole metres, or with the project's correction
+(:mod:`simart_pipeline.sionna_fixes`: the sample moved 1 mm off the edge along the wedge's
+exterior bisector), the corner diffracts: -111.6 dB at (79, 21) m, the one-pass solver's -111.4 dB.
+That corner's field had set the urban scene's gain p95 against PathSolver (docs/ckm-one-pass.md,
+"Session 16"). This script prints the three: Sionna's own generator, the correction, and the
+vertices rounded.
 """
 
 from __future__ import annotations
@@ -39,13 +38,24 @@ def main() -> None:
     radio.solver_config = radio.solver_config.model_copy(update={"samples_per_src": 10**6, "max_depth": 1})
     tx = np.array(spec["tx"])
     ori = np.radians([spec["yaw_pitch_deg"][0], spec["yaw_pitch_deg"][1], 0.0])
+    from sionna.rt.path_solvers.sb_candidate_generator import SBCandidateGenerator
+
+    from simart_pipeline import sionna_fixes
+
     print(f"transmitter {tx.tolist()} m; paths per receiver (D: diffraction point)")
-    print("building_brick as built:")
+    corrected = SBCandidateGenerator._sample_radio_material
+    SBCandidateGenerator._sample_radio_material = sionna_fixes.SIONNAS["sample_radio_material"]
+    try:
+        print("building_brick as built, Sionna RT's own candidate generator:")
+        _show(cs, radio, tx, ori)
+    finally:
+        SBCandidateGenerator._sample_radio_material = corrected
+    print("building_brick as built, corrected (simart_pipeline.sionna_fixes):")
     _show(cs, radio, tx, ori)
     mesh = radio.scene.objects["building_brick"].mi_mesh
     vertices = np.asarray(mesh.vertex_positions_buffer().numpy(), np.float64).reshape(-1, 3)
     faces = np.asarray(mesh.faces_buffer().numpy()).reshape(-1, 3)
-    print("its vertices rounded to whole metres:")
+    print("its vertices rounded to whole metres (corrected):")
     _show(cs, _scene_of(np.round(vertices), faces, cfg), tx, ori)
 
 
