@@ -96,6 +96,7 @@ main one-pass runs keep their 1e7 rays.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import platform
 import tempfile
@@ -221,6 +222,17 @@ _LETTERS = {int(InteractionKind.SPECULAR): "R", int(InteractionKind.DIFFUSE): "S
 def reference_samples(spec: dict, mechanisms: str) -> int:
     """PathSolver's samples per source for the main reference and the per-cell loop of a set on a scene."""
     return int(spec.get("reference_samples", {}).get(mechanisms, REFERENCE_SAMPLES[mechanisms]))
+
+
+@contextlib.contextmanager
+def _samples(radio, samples: int):
+    """PathSolver calls of ``radio`` at ``samples`` per source inside the block, its own after."""
+    config = radio.solver_config
+    radio.solver_config = config.model_copy(update={"samples_per_src": int(samples)})
+    try:
+        yield radio
+    finally:
+        radio.solver_config = config
 
 
 def _config(spec: dict, mechanisms: str = "los_specular") -> SceneConfig:
@@ -539,14 +551,10 @@ def reference_check(radio, tx, ori, centres_xyz: np.ndarray, fast_at: dict, ref_
     worst = np.sort(np.argsort(-err, kind="stable")[:min(cells, int(both.sum()))])
     if worst.size == 0:
         return {"samples_per_src": samples, "cells": 0}
-    config = radio.solver_config
-    radio.solver_config = config.model_copy(update={"samples_per_src": int(samples)})
-    try:
+    with _samples(radio, samples):
         t = time.perf_counter()
         paths = radio.trace(tx[None], ori[None], centres_xyz[worst])
         s = time.perf_counter() - t
-    finally:
-        radio.solver_config = config
     tau0 = np.linalg.norm(centres_xyz[worst] - tx, axis=-1) / SPEED_OF_LIGHT
     again = layers_from_moments(_reference_moments(paths, tau0, codebook))
     fast_g, before = fast_at["path_gain_db"][worst], ref_centre["path_gain_db"][worst]
@@ -569,14 +577,10 @@ def against_converged_reference(radio, tx, ori, centres_xyz: np.ndarray, fast_at
     if points_per_cell not in (1, 9):
         raise ValueError(f"points_per_cell must be 1 or 9, got {points_per_cell}")
     points = centres_xyz if points_per_cell == 1 else _cell_points(centres_xyz)
-    config = radio.solver_config
-    radio.solver_config = config.model_copy(update={"samples_per_src": int(samples)})
-    try:
+    with _samples(radio, samples):
         t = time.perf_counter()
         paths = radio.trace(tx[None], ori[None], points, deterministic=False)
         s = time.perf_counter() - t
-    finally:
-        radio.solver_config = config
     tau0 = np.linalg.norm(centres_xyz - tx, axis=-1) / SPEED_OF_LIGHT
     centre_paths = paths if points_per_cell == 1 else _slice_paths(paths, slice(4, None, 9))
     ref = layers_from_moments(_reference_moments(centre_paths, tau0, codebook))
@@ -751,20 +755,15 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
         sub = np.sort(order["compare"][:min(sizes["converged_reference_cells"], pick.size)])
         converged = against_converged_reference(radio, tx, ori, cells_xyz[sub], _layers_at(m, sub), codebook,
                                                 points_per_cell=sizes["converged_reference_points"])
-    per_call_s, calls_timed = _per_cell_loop_s(radio, tx, ori, cells_xyz[order["loop"][:sizes["loop_cells"]]],
-                                               sizes["loop_budget_s"])
+    loop_cells = cells_xyz[order["loop"][:sizes["loop_cells"]]]
+    per_call_s, calls_timed = _per_cell_loop_s(radio, tx, ori, loop_cells, sizes["loop_budget_s"])
     # the loop at the fewest samples of any set too (what the speed-up was judged on before the
     # diffraction reference needed more): a loop that misses paths, so a lower bound of the speed-up
     fewest = min(REFERENCE_SAMPLES.values())
     per_call_fewest_s = None
     if reference_samples(spec, mechanisms) != fewest:
-        config = radio.solver_config
-        radio.solver_config = config.model_copy(update={"samples_per_src": fewest})
-        try:
-            per_call_fewest_s, _ = _per_cell_loop_s(radio, tx, ori, cells_xyz[order["loop"][:sizes["loop_cells"]]],
-                                                    sizes["loop_budget_s"])
-        finally:
-            radio.solver_config = config
+        with _samples(radio, fewest):
+            per_call_fewest_s, _ = _per_cell_loop_s(radio, tx, ori, loop_cells, sizes["loop_budget_s"])
 
     # RadioMapSolver's Monte-Carlo spread at the main ray count: the same call with another seed
     other_seed = cfg.model_copy(update={"ray_tracing": rt_cfg.model_copy(update={"seed": rt_cfg.seed + 1})})

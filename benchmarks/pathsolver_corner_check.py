@@ -60,19 +60,19 @@ def main() -> None:
 
 
 def _scene_of(vertices, faces, cfg):
-    """A radio scene of one brick mesh (the project's PLY + Sionna XML form), 1e6 samples, depth 1."""
+    """A radio scene of one brick mesh, written as the project writes its radio scenes
+    (:func:`simart_pipeline.scene.meshes.radio_scene_xml`), 1e6 samples, depth 1."""
     import trimesh
 
-    from simart_pipeline.radio import materials
     from simart_pipeline.radio.tracer import RadioScene
+    from simart_pipeline.scene.meshes import radio_scene_xml
 
     folder = Path(tempfile.mkdtemp())
-    trimesh.Trimesh(vertices, faces, process=False).export(folder / "b.ply", encoding="binary")
-    (folder / "scene.xml").write_text(
-        '<scene version="2.1.0">' + materials.bsdf_xml("brick", cfg.ofdm.carrier_frequency_hz, 0.2)
-        + '<shape type="ply" id="b"><string name="filename" value="b.ply"/>'
-        '<boolean name="face_normals" value="true"/>'
-        f'<ref id="{materials.bsdf_id("brick")}" name="bsdf"/></shape></scene>')
+    (folder / "meshes").mkdir()
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    mesh.export(folder / "meshes" / "building_brick.ply", encoding="binary")
+    (folder / "scene.xml").write_text(radio_scene_xml({("building", "brick"): mesh}, 0.2,
+                                                      frequency_hz=cfg.ofdm.carrier_frequency_hz))
     radio = RadioScene.from_config(folder / "scene.xml", cfg)
     radio.solver_config = radio.solver_config.model_copy(update={"samples_per_src": 10**6, "max_depth": 1})
     return radio

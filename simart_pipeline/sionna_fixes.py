@@ -63,25 +63,22 @@ def diffraction_distances(self, paths, src_positions, tgt_positions):
 DIFFRACTION_SAMPLE_OFFSET_M = 1e-3  # Sionna's image method offsets its diffraction points by this much
 
 
-def _sample_off_the_edge(sample_radio_material):
-    def diffraction_sample_off_the_edge(self, si, ray_origin, ki_world, sample1, sample2, sample2_diffraction,
-                                        loc_en_inter, diffraction_enabled, edge_diffraction_enabled, active):
-        """Sionna's ``_sample_radio_material``, with a sampled diffraction point moved off its edge
-        along the wedge's exterior bisector (free edges have none: left as they are)."""
-        from sionna.rt.constants import InteractionType
+def diffraction_sample_off_the_edge(self, si, ray_origin, ki_world, sample1, sample2, sample2_diffraction,
+                                    loc_en_inter, diffraction_enabled, edge_diffraction_enabled, active):
+    """Sionna's ``SBCandidateGenerator._sample_radio_material``, with a sampled diffraction point
+    moved off its edge along the wedge's exterior bisector (free edges have none: left as they are)."""
+    from sionna.rt.constants import InteractionType
 
-        s, n, wedges = sample_radio_material(self, si, ray_origin, ki_world, sample1, sample2, sample2_diffraction,
-                                             loc_en_inter, diffraction_enabled, edge_diffraction_enabled, active)
-        if diffraction_enabled:
-            # the method leaves the interactions it enabled in si.dp_du.z: exactly DIFFRACTION where
-            # it sampled one
-            sampled = dr.reinterpret_array(mi.UInt, si.dp_du.z) == mi.UInt(InteractionType.DIFFRACTION)
-            bisector = dr.normalize(wedges.n0 + wedges.nn)
-            si.p = dr.select(sampled & (wedges.prim0 != wedges.primn),
-                             si.p + DIFFRACTION_SAMPLE_OFFSET_M * bisector, si.p)
-        return s, n, wedges
-    diffraction_sample_off_the_edge._simart_fix = True
-    return diffraction_sample_off_the_edge
+    s, n, wedges = SIONNAS["sample_radio_material"](self, si, ray_origin, ki_world, sample1, sample2,
+                                                    sample2_diffraction, loc_en_inter, diffraction_enabled,
+                                                    edge_diffraction_enabled, active)
+    if diffraction_enabled:
+        # the method leaves the interactions it enabled in si.dp_du.z: exactly DIFFRACTION where it
+        # sampled one
+        sampled = dr.reinterpret_array(mi.UInt, si.dp_du.z) == mi.UInt(InteractionType.DIFFRACTION)
+        bisector = dr.normalize(wedges.n0 + wedges.nn)
+        si.p = dr.select(sampled & (wedges.prim0 != wedges.primn), si.p + DIFFRACTION_SAMPLE_OFFSET_M * bisector, si.p)
+    return s, n, wedges
 
 
 SIONNAS = {}  # what apply() replaced, by name (tests compare against it)
@@ -90,11 +87,10 @@ SIONNAS = {}  # what apply() replaced, by name (tests compare against it)
 def apply() -> None:
     """Install the corrections (idempotent)."""
     from sionna.rt.path_solvers.field_calculator import FieldCalculator
-
     from sionna.rt.path_solvers.sb_candidate_generator import SBCandidateGenerator
 
+    # the first call keeps Sionna's own methods; a later one finds these corrections in place
     SIONNAS.setdefault("diffraction_distances", FieldCalculator._diffraction_compute_s_s_prime)
-    FieldCalculator._diffraction_compute_s_s_prime = diffraction_distances
     SIONNAS.setdefault("sample_radio_material", SBCandidateGenerator._sample_radio_material)
-    if not getattr(SBCandidateGenerator._sample_radio_material, "_simart_fix", False):
-        SBCandidateGenerator._sample_radio_material = _sample_off_the_edge(SIONNAS["sample_radio_material"])
+    FieldCalculator._diffraction_compute_s_s_prime = diffraction_distances
+    SBCandidateGenerator._sample_radio_material = diffraction_sample_off_the_edge
