@@ -56,9 +56,9 @@ def reruns(tmp_path_factory):
     instance = dg.DagsterInstance.ephemeral()
     steps = {}
 
-    def run(name, **kw):
+    def run(name, tiles=TILES, **kw):
         lines = []
-        materialize_scene(scene, data, None, TILES, instance=instance, progress=lines.append, **kw)
+        materialize_scene(scene, data, None, tiles, instance=instance, progress=lines.append, **kw)
         steps[name] = (_files(data), lines)
 
     def dagster_stale(name):
@@ -77,6 +77,9 @@ def reruns(tmp_path_factory):
     dagster_stale("rain_materials")
     run("rain_materials")
     run("forced", force=True)
+    shutil.rmtree(data / "ckm")  # the maps deleted (as with the data root): the first tile recreates them
+    run("maps_deleted", tiles=TILES[:1])
+    run("maps_refilled")
     return data, scene, instance, steps
 
 
@@ -156,6 +159,25 @@ def test_force_recomputes_everything(reruns):
     assert len(_computed(steps["forced"][1])) == 22
     rewritten = _rewritten(steps["rain_materials"][0], steps["forced"][0])
     assert {"ckm/tiny/sunny.zarr", "cirs/tiny/sunny.zarr", "osm_extract/tiny.zarr"} <= rewritten
+
+
+def test_deleted_maps_are_refilled_by_every_tile_and_pictured_again(reruns):
+    """A tile is up to date only if its region of each map is; the first tile rerun recreates the
+    maps, and the other tiles must not take the recreated (empty) regions for theirs."""
+    from simart_pipeline.ckm.maps import map_groups, map_path
+    from simart_pipeline.ckm.mosaic import open_map
+
+    data, scene, _, steps = reruns
+    assert _computed(steps["maps_deleted"][1]) == {f"ckm_layers (tiny|{TILES[0]})", "ckm_map (tiny)"}
+    refilled = steps["maps_refilled"][1]
+    assert _computed(refilled) == {f"ckm_layers (tiny|{TILES[1]})", "ckm_map (tiny)"}
+    assert any(f"ckm_layers (tiny|{TILES[1]}): computing (its region of the sunny map is missing" in line
+               for line in refilled)
+    assert any("ckm_map (tiny): computing (the sunny map changed since its picture)" in line for line in refilled)
+    cfg = load_scene_config(scene)
+    for name in map_groups(cfg):
+        done = open_map(map_path(data, cfg.name, name))["tile_complete"].values
+        assert done[0, 0] and done[0, 1], name
 
 
 def test_data_versions_depend_on_inputs_alone(reruns, tmp_path):

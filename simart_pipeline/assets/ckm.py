@@ -86,6 +86,7 @@ def ckm_map(context: dg.AssetExecutionContext, project: ProjectResource, osm_ext
         complete = [t for t in wanted if done[parse_tile_key(t)]]
         meta[f"{name}_store"] = dg.MetadataValue.path(str(path))
         meta[f"{name}_tiles_complete"] = f"{len(complete)}/{len(wanted)}"
+        meta[f"{name}_tiles_digest"] = mosaic.tiles_digest(path)  # what was pictured (simart run's staleness)
         meta[f"{name}_cells"] = int(ds.sizes["y"] * ds.sizes["x"] * ds.sizes["height"])
         meta[f"{name}_map"] = dg.MetadataValue.md(previews.heatmaps(
             list(picture_layers(ds)), ds["x"].values, ds["y"].values, geom,

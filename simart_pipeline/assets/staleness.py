@@ -20,7 +20,7 @@ from dagster._core.utils import make_new_backfill_id
 from dagster._time import get_current_timestamp
 
 from simart_pipeline import versions
-from simart_pipeline.ckm.grid import scene_tiles
+from simart_pipeline.ckm.grid import scene_tiles, tile_slices
 from simart_pipeline.partitions import split_key
 from simart_pipeline.radio.materials import WEATHER_GROUP
 
@@ -43,9 +43,31 @@ def partition_status(instance, plan, asset: str, key, data_root: Path, paths: li
     if not all(p.exists() for p in paths):
         return False, "its store is missing"
     if recorded == expected:
-        return True, ""
+        return _map_content_status(plan, asset, sub, data_root, md)
     old = md["data_version_inputs"].value if "data_version_inputs" in md else None
     return False, versions.why_different(old, plan.inputs(asset, sub))
+
+
+def _map_content_status(plan, asset: str, sub, data_root: Path, md) -> tuple[bool, str]:
+    """The CKM assets share the scene's mosaic maps, so a map that exists is not enough: a tile is up
+    to date only if its region of every map is complete at its version, and the map's picture only if
+    the map's tiles are what it pictured (a deleted and recreated map, e.g. after the data root was
+    removed, holds only the tiles rerun since)."""
+    from simart_pipeline.ckm import mosaic
+    from simart_pipeline.ckm.maps import map_groups, map_path
+
+    cfg = plan.cfg
+    if asset == "ckm_layers" and tile_slices(cfg.ckm, sub) is not None:
+        for name in map_groups(cfg):
+            if not mosaic.tile_is_current(map_path(data_root, cfg.name, name), sub, plan.map_version(name),
+                                          plan.map_tile_version(name, sub)):
+                return False, f"its region of the {name} map is missing or out of date"
+    if asset == "ckm_map":
+        for name in map_groups(cfg):
+            key = f"{name}_tiles_digest"
+            if key not in md or md[key].value != mosaic.tiles_digest(map_path(data_root, cfg.name, name)):
+                return False, f"the {name} map changed since its picture"
+    return True, ""
 
 
 def scene_steps(cfg, weathers, tiles) -> list[tuple[list[str], object]]:

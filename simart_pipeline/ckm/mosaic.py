@@ -93,6 +93,18 @@ def tile_is_current(path: Path, tile: str, map_version: str, tile_version: int) 
         return False
 
 
+def tiles_digest(path: Path) -> str:
+    """Digest of the mosaic's template and per-tile versions (``tile_data_version``): it changes
+    whenever a tile is written or the map is recreated, so a picture of the map can tell whether the
+    map changed since ("" when the map is absent or unreadable)."""
+    try:
+        g = zarr.open_group(Path(path), mode="r")
+        versions = np.asarray(g["tile_data_version"][...], dtype=np.int64)
+        return hashlib.sha256(str(g.attrs.get("template_sha256")).encode() + versions.tobytes()).hexdigest()[:16]
+    except Exception:
+        return ""
+
+
 def _remove_partial_chunks(path: Path, r: int, c: int) -> None:
     """Delete the half-written chunk files (``<chunk>.<uuid>.partial``, zarr's LocalStore) that a run
     killed while writing tile (r, c) left: readers ignore them, but they would pile up. The chunk key
