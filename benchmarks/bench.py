@@ -87,12 +87,12 @@ def _sum_ckm_solver(r):
         for ms, st in (sc.get("sets") or {}).items():
             rm = st.get("radio_map_solver", {})
             agree = _get(rm, "at_one_pass_rays", "path_gain_agreement_with_one_pass", "abs_diff_db", default={})
-            e3 = st.get("errors_vs_3x3_points", {})
+            e3 = st.get("errors_vs_cell_points", {})
             lines += [f"{name}, {ms}: coverage {_get(st, 'coverage', 'covered_of_reached_pct')} % of the sampled cells "
                       f"PathSolver reaches; one-pass {_get(st, 'one_pass', 'warm_s')} s warm, "
                       f"**{st.get('speedup_vs_per_cell_loop')}x** one PathSolver call per cell; path gain p50 / p95 "
                       f"{_get(e3, 'path_gain_db', 'p50')} / {_get(e3, 'path_gain_db', 'p95')} dB against PathSolver's "
-                      f"3 x 3 points, best beam {e3.get('best_beam_agreement_pct')} % (top-3 "
+                      f"{_get(st, 'pathsolver', 'points_per_cell')} points per cell, best beam {e3.get('best_beam_agreement_pct')} % (top-3 "
                       f"{e3.get('best_beam_top3_agreement_pct')} %)",
                       f"{name}, {ms}: one-pass / RadioMapSolver time at the same rays "
                       f"**{rm.get('one_pass_over_radio_map_time')}x**, path gain |difference| p50 / p95 "

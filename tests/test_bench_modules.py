@@ -140,7 +140,7 @@ def test_rays_vs_error_plot_is_a_png_and_skipped_points_are_left_out(tmp_path):
     from benchmarks.ckm_solver import write_rays_vs_error_plot
 
     def point(rays, s, err):
-        return {"rays": rays, "warm_s": s, "coverage_pct": 90.0, "vs_3x3": {"path_gain_db": {"p50": err}}}
+        return {"rays": rays, "warm_s": s, "coverage_pct": 90.0, "vs_cell_points": {"path_gain_db": {"p50": err}}}
 
     curves = {"canyon": {"one_pass": [point(10**5, 0.1, 2.0), point(10**6, 1.0, None), {"rays": 10**8, "skipped": "x"}],
                          "radio_map_solver": [point(10**5, 0.05, 3.0)]}}
@@ -236,7 +236,7 @@ def test_coverage_counts_missed_and_extra_cells_and_names_what_pathsolver_found(
     valid = np.zeros((36, 1, 1), bool)
     valid[:18] = True
     paths = SimpleNamespace(a=np.ones((36, 1, 1, 1, 1), complex), interaction=inter, valid=valid)
-    c = coverage(fast, {"vs_3x3": ref3, "vs_centre": centre}, paths)
+    c = coverage(fast, {"vs_cell_points": ref3, "vs_centre": centre}, paths)
     assert (c["sampled_cells"], c["reached_by_pathsolver"], c["missed"], c["missed_with_too_few_hits"],
             c["covered_not_reached"]) == (4, 2, 1, 1, 1)
     assert c["covered_of_reached_pct"] == 50.0 and c["vs_centre"]["covered_of_reached_pct"] == 100.0
@@ -275,10 +275,10 @@ def _set_result(mechanisms: str, seed: int = 0) -> dict:
     r = {"mechanisms": {}, "label": cs.SET_LABELS[mechanisms], "cells_covered": 8,
          "one_pass": {"rays": 10**7, "warm_s": 3.0, "first_call_s": None, "cells_per_s": 10.0},
          "pathsolver": {"per_cell_call_s": 0.5, "per_cell_calls_timed": 3, "batched_s_per_cell": 0.1},
-         "coverage": cs.coverage(fast, {"vs_3x3": ref, "vs_centre": ref}, paths),
+         "coverage": cs.coverage(fast, {"vs_cell_points": ref, "vs_centre": ref}, paths),
          "speedup_vs_per_cell_loop": 150.0, "speedup_vs_per_cell_loop_all_cells": 200.0,
          "speedup_vs_batched_pathsolver": 30.0,
-         "errors_vs_centre": cs._compare(fast, ref), "errors_vs_3x3_points": cs._compare(fast, ref),
+         "errors_vs_centre": cs._compare(fast, ref), "errors_vs_cell_points": cs._compare(fast, ref),
          "radio_map_solver": {"one_pass_unpolarised": {"rays": 10**7, "first_call_s": 1.0, "warm_s": 3.0,
                                                        "cells_per_s": 10.0, "cells_covered": 2},
                               "default_samples": rms, "at_one_pass_rays": rms,
@@ -303,8 +303,8 @@ def _set_result(mechanisms: str, seed: int = 0) -> dict:
             "samples_per_src": 10**8, "generator": "default (non-deterministic)", "cells": 8, "s": 5.0,
             "points_per_cell": 9, "reached_by_pathsolver": int(ref["has_path"].sum()),
             "covered_of_reached_pct": cs._covered_of_reached_pct(fast["has_path"], ref["has_path"]),
-            "errors_vs_centre": cs._compare(fast, ref), "errors_vs_3x3_points": cs._compare(ref, ref),
-            "reached_by_pathsolver_3x3": 8, "covered_of_reached_pct_3x3": 75.0}
+            "errors_vs_centre": cs._compare(fast, ref), "errors_vs_cell_points": cs._compare(ref, ref),
+            "reached_by_pathsolver_cell_points": 8, "covered_of_reached_pct_cell_points": 75.0}
     if mechanisms in cs.CONVERGED_MAP_SETS:
         truth = np.array([-90.0, -100.0, np.nan, -80.0])
         r["against_converged_map"] = {
@@ -316,7 +316,7 @@ def _set_result(mechanisms: str, seed: int = 0) -> dict:
                                                 np.ones(4, bool), truth, 2.0)}
     if mechanisms in cs.SWEEP_SETS:
         point = {"rays": 10**5, "warm_s": 0.1, "first_call_s": 0.2, "coverage_pct": 50.0, "covered_of_reached_pct": 90.0,
-                 "vs_centre": cs._curve_point(r["errors_vs_centre"]), "vs_3x3": cs._curve_point(r["errors_vs_3x3_points"])}
+                 "vs_centre": cs._curve_point(r["errors_vs_centre"]), "vs_cell_points": cs._curve_point(r["errors_vs_cell_points"])}
         r["rays_vs_error"] = {"one_pass": [point, {"rays": 10**8, "skipped": "predicted 400 s per call > 300 s"}],
                               "radio_map_solver": [point]}
     r["targets_met"] = cs.targets(r, mechanisms)
@@ -342,14 +342,14 @@ def test_ckm_solver_targets_and_report_cover_every_mechanism_set(tmp_path):
 
     sets = {m: _set_result(m, i) for i, m in enumerate(cs.MECHANISM_SETS)}
     assert set(sets["los_specular"]["targets_met"]) == {
-        "speedup_vs_per_cell_loop_ge_100", "path_gain_p50_vs_3x3_le_0.5_db", "toa_p50_vs_centre_le_1_ns",
+        "speedup_vs_per_cell_loop_ge_100", "path_gain_p50_vs_cell_points_le_0.5_db", "toa_p50_vs_centre_le_1_ns",
         "best_beam_agreement_ge_95_pct", "one_pass_within_2x_of_radio_map_solver",
         "path_gain_p50_vs_radio_map_solver_le_0.1_db"}
     t = sets["all"]["targets_met"]
-    assert {"coverage_of_pathsolver_cells_ge_99_pct", "path_gain_p95_vs_3x3_le_3_db", "rms_delay_spread_p50_vs_3x3_le_5_ns",
-            "angular_spreads_p50_vs_3x3_le_5_deg", "best_beam_top3_agreement_ge_99_pct"} <= set(t)
+    assert {"coverage_of_pathsolver_cells_ge_99_pct", "path_gain_p95_vs_cell_points_le_3_db", "rms_delay_spread_p50_vs_cell_points_le_5_ns",
+            "angular_spreads_p50_vs_cell_points_le_5_deg", "best_beam_top3_agreement_ge_99_pct"} <= set(t)
     assert t["speedup_vs_per_cell_loop_ge_100"] is True and t["one_pass_within_2x_of_radio_map_solver"] is True
-    assert t["angular_spreads_p50_vs_3x3_le_5_deg"] is False  # random spreads of 0 .. 20 deg
+    assert t["angular_spreads_p50_vs_cell_points_le_5_deg"] is False  # random spreads of 0 .. 20 deg
     results = {"settings": {"machine": "m", "variant": "v", "quick": False, "total_s": 1.0, "rays": 10**7,
                             "min_hits_for_spread": 10, "compare_cells": {m: 8 for m in sets}},
                "scenes": {"canyon": {"grid": {"cells": 100, "cells_with_outdoor_area": 80}, "sets": sets}}}
@@ -373,7 +373,7 @@ def test_ckm_solver_targets_and_report_cover_every_mechanism_set(tmp_path):
     assert "| canyon | diffraction | 8 | 9 | 5.0 | 8 | 75 | 0 / 0 | " in md
     # judged again against the converged reference: every error 0, the pooled coverage (75 %) read
     again = sets["diffraction"]["targets_met_vs_converged_reference"]
-    assert again["path_gain_p95_vs_3x3_le_3_db"] is True and again["best_beam_top3_agreement_ge_99_pct"] is True
+    assert again["path_gain_p95_vs_cell_points_le_3_db"] is True and again["best_beam_top3_agreement_ge_99_pct"] is True
     assert again["coverage_of_pathsolver_cells_ge_99_pct"] is False
     assert again["speedup_vs_per_cell_loop_ge_100"] == sets["diffraction"]["targets_met"]["speedup_vs_per_cell_loop_ge_100"]
     assert "The same, the accuracy judged against the converged reference" in md
@@ -465,3 +465,23 @@ def test_visual_faces_get_their_features_radio_materials():
     footprints = shapely.union_all([f.geometry for f in geom.volumes()])
     assert len(rx) == 20 and not any(footprints.contains(shapely.Point(p[:2])) for p in rx)
     assert not footprints.contains(shapely.Point(tx[:2])) and np.all(np.diff(gx) > 0) and np.all(np.diff(gy) > 0)
+
+
+@pytest.mark.parametrize("per_side", [3, 5])
+def test_ckm_solver_cell_points_stratify_the_cell_around_its_centre(per_side):
+    """The reference's n x n points are the centres of the cell's n x n equal sub-cells: inside the
+    cell, their mean and their middle one the cell's centre, one sub-cell apart; even n refused."""
+    from benchmarks import ckm_solver as cs
+
+    centres = np.array([[10.0, -4.0, 1.5], [0.0, 0.0, 1.5]])
+    pts = cs._cell_points(centres, per_side).reshape(2, per_side * per_side, 3)
+    half = cs.CELL_M / 2
+    assert np.all(np.abs(pts[..., :2] - centres[:, None, :2]) < half)
+    np.testing.assert_allclose(pts.mean(1), centres, atol=1e-12)
+    np.testing.assert_allclose(pts[:, per_side * per_side // 2], centres)
+    xs = np.unique(pts[0, :, 0].round(9))
+    assert len(xs) == per_side
+    np.testing.assert_allclose(np.diff(xs), cs.CELL_M / per_side)
+    np.testing.assert_allclose(xs[0] - (centres[0, 0] - half), cs.CELL_M / per_side / 2)
+    with pytest.raises(ValueError, match="odd"):
+        cs._cell_points(centres, 4)

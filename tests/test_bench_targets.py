@@ -67,7 +67,7 @@ def _ckm_set(coverage=99.5, gain=(0.2, 2.0), top3=99.5, ratio=1.5):
     e = {"path_gain_db": {"p50": gain[0], "p95": gain[1]}, "rms_delay_spread_ns": {"p50": 1.0},
          "best_beam_agreement_pct": 96.0, "best_beam_top3_agreement_pct": top3,
          **{k: {"p50": 1.0} for k in ("asa_deg", "asd_deg", "zsa_deg")}, "zsd_deg": {"p50": None}}
-    return {"coverage": {"covered_of_reached_pct": coverage}, "errors_vs_3x3_points": e,
+    return {"coverage": {"covered_of_reached_pct": coverage}, "errors_vs_cell_points": e,
             "errors_vs_centre": {"toa_ns": {"p50": 0.1}}, "speedup_vs_per_cell_loop": 150.0,
             "radio_map_solver": {"one_pass_over_radio_map_time": ratio, "at_one_pass_rays": {
                 "path_gain_agreement_with_one_pass": {"abs_diff_db": {"p50": 0.05, "p95": 0.5}}},
