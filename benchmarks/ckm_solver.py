@@ -143,8 +143,8 @@ REFERENCE_SAMPLES = {"los_specular": 100_000, "diffraction": 1_000_000, "all": 1
 # Points per side of the square grid of PathSolver receivers that estimates a cell's mean (odd: the
 # centre among them), per set. The layers are ray-tube means over the cell; with diffraction the
 # beams of a cell near a shadow boundary are close (near-ties within 0.1 - 1.5 dB), and 3 x 3 points
-# choose another best beam than 5 x 5 in 2.0 % of the street canyon's 200 cells, as much as the
-# 95 % target leaves: the one-pass agrees with 5 x 5 (and 6 x 6) in 96.0 %, with 3 x 3 in 94.0 %
+# choose another best beam than 5 x 5 in 2.0 % of the street canyon's 200 cells, 2 of the 5 points
+# the 95 % target leaves: the one-pass agrees with 5 x 5 (and 6 x 6) in 96.0 %, with 3 x 3 in 94.0 %
 # (2.5x the reference's time). Specular paths vary little within a 2 m cell: 3 x 3.
 REFERENCE_POINTS_PER_SIDE = {"los_specular": 3, "diffraction": 5, "all": 3}
 SPREADS = ("asa_deg", "asd_deg", "zsa_deg", "zsd_deg")
@@ -502,7 +502,7 @@ def coverage(fast_at: dict, refs: dict, paths, pool: int = 9) -> dict:
     """Of the sampled cells where PathSolver finds a path, how many the one-pass layers cover.
 
     ``fast_at``: :func:`_layers_at`; ``refs``: ``vs_cell_points`` and ``vs_centre`` layers; ``paths``: the
-    3 x 3 run's TracedPaths (``pool`` receivers per cell), whose interaction sequences say what the
+    reference run's TracedPaths (``pool`` receivers per cell), whose interaction sequences say what the
     one-pass misses (``missed``) and what PathSolver finds in every cell it reaches (``reached``)."""
     fast_has, reached = fast_at["has_path"], refs["vs_cell_points"]["has_path"]
     missed = reached & ~fast_has
