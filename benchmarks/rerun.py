@@ -1,12 +1,18 @@
 """Reruns of the demo, measured side by side on a fresh data root: the first run, an unchanged
 rerun, a rerun after one sensor's rate changes and one after the rain materials change.
 
-    python -m benchmarks.rerun --out DIR [--scene scenes/demo]
+    python -m benchmarks.rerun --out DIR [--scene scenes/demo] [--baseline REV]
 
 Each step is the whole ``simart run`` command in a new process, as a user types it (wall time,
 interpreter and library start-up included), on a copy of the scene with its own data root and
 Dagster instance. ``in_process_s`` is the time ``simart run`` itself reports for its partitions
 (start-up excluded). Writes ``DIR/results.json`` and ``DIR/report.md``.
+
+``--baseline REV`` also times, in the same run, the first run of the same scene by the code of git
+revision ``REV`` (extracted with ``git archive``, run by this interpreter and its libraries, on its own
+fresh data root and instance), before and after this commit's first run: issue 15's "figures of the
+commit before, measured in the same run". ``first_run_speedup_vs_baseline`` is the baseline's mean
+wall time over this commit's.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from statistics import mean
 
 import yaml
 
@@ -46,10 +53,10 @@ def _first_sensor(raw: dict) -> dict:
     raise SystemExit("the scene has no sensor to edit")
 
 
-def _run(scene: Path, data: Path, env: dict) -> dict:
+def _run(scene: Path, data: Path, env: dict, cwd: Path | None = None) -> dict:
     t0 = time.perf_counter()
     res = subprocess.run([*SIMART, "run", str(scene), "--data", str(data)], capture_output=True, text=True,
-                         env=env)
+                         env=env, cwd=cwd)
     wall = time.perf_counter() - t0
     if res.returncode != 0:
         raise SystemExit(f"simart run failed:\n{res.stdout}\n{res.stderr}")
@@ -69,10 +76,38 @@ def _computed_summary(computed: list[str], every: int) -> str:
     return f"{len(computed)}{' (all)' if len(computed) == every else ''}: {counts}"
 
 
+def _extract(rev: str, into: Path) -> Path:
+    """The tree of git revision ``rev`` of this repository, extracted under ``into``."""
+    repo = Path(__file__).resolve().parents[1]
+    into.mkdir(parents=True)
+    archive = subprocess.run(["git", "-C", str(repo), "archive", rev], capture_output=True, check=False)
+    if archive.returncode != 0:
+        raise SystemExit(f"--baseline {rev}: git archive failed: {archive.stderr.decode().strip()}")
+    subprocess.run(["tar", "-x", "-C", str(into)], input=archive.stdout, check=True)
+    return into
+
+
+def _first_run_of(code: Path | None, scene: Path, tmp: Path, tag: str, base_env: dict) -> dict:
+    """A first run of ``scene`` on a fresh data root and instance, by the code at ``code`` (None:
+    this checkout)."""
+    data, home = tmp / f"data_{tag}", tmp / f"home_{tag}"
+    home.mkdir()
+    env = {**base_env, "DAGSTER_HOME": str(home)}
+    if code is not None:  # ahead of this checkout's editable install
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(code), base_env.get("PYTHONPATH")]))
+    try:
+        return _run(scene, data, env, cwd=code)
+    finally:
+        shutil.rmtree(data, ignore_errors=True)
+        shutil.rmtree(home, ignore_errors=True)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", required=True, help="directory for results.json and report.md")
     ap.add_argument("--scene", default=str(DEMO), help="scene directory (default: the demo)")
+    ap.add_argument("--baseline", metavar="REV", help="also time the first run by git revision REV's code, "
+                    "before and after this commit's (e.g. the commit before a change)")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -84,8 +119,14 @@ def main(argv=None) -> int:
         data, home = tmp / "data", tmp / "dagster_home"
         home.mkdir()
         env = {**os.environ, "DAGSTER_HOME": str(home), "PYTHONHASHSEED": "0"}
-        steps = {}
+        steps, baseline = {}, None
+        if args.baseline:
+            code = _extract(args.baseline, tmp / "baseline_code")
+            baseline = {"rev": args.baseline, "runs": [_first_run_of(code, scene, tmp, "b0", env)]}
         steps["first run"] = _run(scene, data, env)
+        if baseline is not None:  # baseline, this commit, baseline, this commit: drift shows in both
+            baseline["runs"].append(_first_run_of(code, scene, tmp, "b1", env))
+            baseline["this_commit_runs"] = [steps["first run"], _first_run_of(None, scene, tmp, "c1", env)]
         steps["unchanged rerun"] = _run(scene, data, env)
         sensor = {}
 
@@ -104,9 +145,14 @@ def main(argv=None) -> int:
         if s["in_process_s"] is not None and first["in_process_s"]:
             s["ratio_to_first_in_process"] = round(s["in_process_s"] / first["in_process_s"], 4)
     unchanged = steps["unchanged rerun"]
+    if baseline is not None:
+        base_wall = mean(r["wall_s"] for r in baseline["runs"])
+        this_wall = mean(r["wall_s"] for r in baseline["this_commit_runs"])
+        baseline.update(mean_wall_s=round(base_wall, 2), this_commit_mean_wall_s=round(this_wall, 2),
+                        first_run_speedup_vs_baseline=round(base_wall / this_wall, 3))
     results = {
         "scene": src.name, "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}",
-        "python": platform.python_version(), "steps": steps,
+        "python": platform.python_version(), "steps": steps, "baseline": baseline,
         "targets": {"unchanged_wall_ratio_max": TARGET_UNCHANGED_WALL,
                     "unchanged_in_process_ratio_max": TARGET_UNCHANGED_IN_PROCESS,
                     "unchanged_wall_met": unchanged["ratio_to_first_wall"] <= TARGET_UNCHANGED_WALL,
@@ -127,6 +173,11 @@ def main(argv=None) -> int:
               f"(target <= {TARGET_UNCHANGED_WALL:.0%}: {'met' if t['unchanged_wall_met'] else 'missed'}); "
               f"{unchanged.get('ratio_to_first_in_process', float('nan')):.2%} excluding start-up "
               f"(target <= {TARGET_UNCHANGED_IN_PROCESS:.0%}: {'met' if t['unchanged_in_process_met'] else 'missed'})."]
+    if baseline is not None:
+        lines += ["", f"First run against `{baseline['rev']}`'s code, alternated (baseline, this commit, "
+                  f"baseline, this commit): {', '.join(str(r['wall_s']) for r in baseline['runs'])} s against "
+                  f"{', '.join(str(r['wall_s']) for r in baseline['this_commit_runs'])} s; this commit "
+                  f"{baseline['first_run_speedup_vs_baseline']:.2f}x faster."]
     (out / "report.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
