@@ -200,9 +200,9 @@ BLOCK_BYTES = 8 << 20  # a stream reads its store this much at a time (one insta
 
 
 def _instants(ds: xr.Dataset) -> Iterator[tuple[int, _Instant]]:
-    """``(index, the dataset at that instant)`` in time order, read from the store a block of
-    instants at a time: one read per block, not per message, and never more than about
-    :data:`BLOCK_BYTES` (or one instant) of a stream in memory."""
+    """``(index, the variables at that instant)`` (an :class:`_Instant`) in time order, read from
+    the store a block of instants at a time: one read per block, not per message, and never more
+    than about :data:`BLOCK_BYTES` (or one instant) of a stream in memory."""
     n = ds.sizes["time"]
     step = max(1, BLOCK_BYTES // max(1, ds.nbytes // max(n, 1)))
     for start in range(0, n, step):
