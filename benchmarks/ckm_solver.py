@@ -763,7 +763,7 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
     check = (reference_check(radio, tx, ori, cells_xyz[pick], fast_at, ref_centre, codebook, sizes["check_cells"])
              if mechanisms in REFERENCE_CHECK_SETS else None)
     converged = None
-    if mechanisms in CONVERGED_REFERENCE_SETS:
+    if mechanisms in CONVERGED_REFERENCE_SETS and sizes["converged_reference_cells"] > 0:
         sub = np.sort(order["compare"][:min(sizes["converged_reference_cells"], pick.size)])
         converged = against_converged_reference(radio, tx, ori, cells_xyz[sub], _layers_at(m, sub), codebook,
                                                 points_per_cell=sizes["converged_reference_points"])
@@ -821,7 +821,7 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
             one_pass(num_rays, None, diffraction_with_reflections=False) if switches["diffraction"] else None,
             lambda: radio_map_path_gain_db(radio, other_seed, HEIGHT_M, num_rays)[0]),
     }
-    if mechanisms in CONVERGED_MAP_SETS:
+    if mechanisms in CONVERGED_MAP_SETS and sizes["converged_factor"] > 0:
         out["against_converged_map"] = against_converged_map(one_pass, num_rays, fast["path_gain_db"][0], eligible,
                                                              sizes["converged_factor"], fast_s)
     if mechanisms in SWEEP_SETS:
@@ -837,7 +837,8 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
 
 
 def run_scene(name: str, spec: dict, num_rays: int, sets, quick: bool, seed: int, ray_counts=RAY_COUNTS,
-              log=print, converged_points: int = 1) -> dict:
+              log=print, converged_points: int = 1, cells: dict | None = None,
+              converged_cells: int | None = None, converged_map: bool = True) -> dict:
     """Every mechanism set of ``sets`` on one scene; a set's sizes from :data:`COMPARE_CELLS`,
     :data:`LOOP_CELLS`, :data:`LOOP_BUDGET_S` (``quick`` picks the first of each pair)."""
     nx, ny = (int(round(s / CELL_M)) for s in spec["size"])
@@ -857,9 +858,11 @@ def run_scene(name: str, spec: dict, num_rays: int, sets, quick: bool, seed: int
         out["scene_build_s"] = round(time.perf_counter() - t0, 3)
         for s in sets:
             t0 = time.perf_counter()
-            sizes = {"compare_cells": COMPARE_CELLS[s][q], "loop_cells": LOOP_CELLS[q], "loop_budget_s": LOOP_BUDGET_S[q],
-                     "check_cells": REFERENCE_CHECK_CELLS[q], "converged_factor": CONVERGED_SAMPLES_FACTOR[q],
-                     "converged_reference_cells": CONVERGED_REFERENCE_CELLS[q],
+            sizes = {"compare_cells": (cells or {}).get(s, COMPARE_CELLS[s][q]), "loop_cells": LOOP_CELLS[q],
+                     "loop_budget_s": LOOP_BUDGET_S[q], "check_cells": REFERENCE_CHECK_CELLS[q],
+                     "converged_factor": CONVERGED_SAMPLES_FACTOR[q] if converged_map else 0,
+                     "converged_reference_cells": (CONVERGED_REFERENCE_CELLS[q] if converged_cells is None
+                                                   else converged_cells),
                      "converged_reference_points": converged_points,
                      "repeats": WARM_REPEATS if s == "los_specular" else (0 if quick else 1)}
             out["sets"][s] = run_set(name, s, xml, spec, num_rays, order, sizes, ray_counts, sample)
@@ -1292,7 +1295,8 @@ def write_rays_vs_error_plot(curves: dict[str, dict[str, list[dict]]], path: Pat
     return path
 
 
-def main(argv=None) -> int:
+def parse_args(argv=None) -> tuple[argparse.Namespace, dict[str, int]]:
+    """The command line, and ``--cells`` as {set: compared cells}."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer compared and timed cells (minutes)")
     ap.add_argument("--out", required=True, type=Path, help="folder for results.json and report.md")
@@ -1306,14 +1310,34 @@ def main(argv=None) -> int:
     ap.add_argument("--converged-points", type=int, choices=(1, 9), default=1,
                     help="points per cell of the converged reference: 1 (the centre) or 9 (3 x 3; "
                          "9x its time: Munich's 40 cells about 30 min)")
+    ap.add_argument("--cells", nargs="+", default=[], metavar="SET=N",
+                    help="compared cells of a set instead of COMPARE_CELLS' (e.g. diffraction=100)")
+    ap.add_argument("--converged-cells", type=int, default=None, metavar="N",
+                    help="cells of the converged 1e8-sample reference (default 40, --quick 4; 0: none)")
+    ap.add_argument("--no-converged-map", action="store_true",
+                    help="skip the one-pass map at CONVERGED_SAMPLES_FACTOR times the samples")
     args = ap.parse_args(argv)
+    cells = {}
+    for item in args.cells:
+        key, _, n = item.partition("=")
+        if key not in MECHANISM_SETS or not n.isdigit() or int(n) < 1:
+            ap.error(f"--cells {item}: expected SET=N with SET one of {', '.join(MECHANISM_SETS)} and N >= 1")
+        cells[key] = int(n)
+    return args, cells
+
+
+def main(argv=None) -> int:
+    args, cells = parse_args(argv)
     q = 0 if args.quick else 1
     ray_counts = [int(n) for n in args.ray_counts] if args.ray_counts else (
         QUICK_RAY_COUNTS if args.quick else RAY_COUNTS)
     t0 = time.perf_counter()
     variant = engine.init()
     results = {"settings": {"quick": args.quick, "rays": int(args.rays), "sets": list(args.sets),
-                            "compare_cells": {k: COMPARE_CELLS[k][q] for k in args.sets},
+                            "compare_cells": {k: cells.get(k, COMPARE_CELLS[k][q]) for k in args.sets},
+                            "converged_reference_cells": (CONVERGED_REFERENCE_CELLS[q] if args.converged_cells is None
+                                                          else args.converged_cells),
+                            "converged_map": not args.no_converged_map,
                             "per_cell_loop_cells": LOOP_CELLS[q], "per_cell_loop_budget_s": LOOP_BUDGET_S[q],
                             "variant": variant, "seed": args.seed, "ray_counts": list(ray_counts),
                             "converged_reference_points_per_cell": args.converged_points,
@@ -1327,7 +1351,9 @@ def main(argv=None) -> int:
                "scenes": {}}
     for name in args.scenes:
         results["scenes"][name] = run_scene(name, SCENES[name], int(args.rays), args.sets, args.quick, args.seed,
-                                            ray_counts, converged_points=args.converged_points)
+                                            ray_counts, converged_points=args.converged_points, cells=cells,
+                                            converged_cells=args.converged_cells,
+                                            converged_map=not args.no_converged_map)
         print(json.dumps({name: results["scenes"][name]}, indent=1), flush=True)
     results["settings"]["total_s"] = round(time.perf_counter() - t0, 1)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -485,3 +485,21 @@ def test_ckm_solver_cell_points_stratify_the_cell_around_its_centre(per_side):
     np.testing.assert_allclose(xs[0] - (centres[0, 0] - half), cs.CELL_M / per_side / 2)
     with pytest.raises(ValueError, match="odd"):
         cs._cell_points(centres, 4)
+
+
+def test_bench_runs_ckm_solver_with_fewer_cells_and_no_convergence_diagnostics():
+    """The full `simart bench` passes its own ckm_solver sizes (the module's defaults exceed its
+    hour); they parse to smaller compared-cell counts than the defaults, and a bad one is refused."""
+    from benchmarks import ckm_solver
+    from benchmarks.bench import CKM_SOLVER_BENCH_ARGS
+
+    args, cells = ckm_solver.parse_args(["--out", "x", *CKM_SOLVER_BENCH_ARGS])
+    assert set(cells) == set(ckm_solver.MECHANISM_SETS)
+    assert all(0 < n < ckm_solver.COMPARE_CELLS[k][1] for k, n in cells.items())
+    assert args.converged_cells == 0 and args.no_converged_map
+    assert max(args.ray_counts) <= args.rays  # no point above the main ray count
+    defaults, none = ckm_solver.parse_args(["--out", "x"])
+    assert none == {} and defaults.converged_cells is None and not defaults.no_converged_map
+    for bad in ("diffraction", "diffraction=0", "mirrors=5"):
+        with pytest.raises(SystemExit):
+            ckm_solver.parse_args(["--out", "x", "--cells", bad])
