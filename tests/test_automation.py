@@ -5,7 +5,6 @@ other; a changed upstream requests exactly what depends on it."""
 from __future__ import annotations
 
 import warnings
-from pathlib import Path
 
 import dagster as dg
 import pytest
@@ -15,7 +14,6 @@ from conftest import TESTS
 from simart_pipeline import registry, versions
 from simart_pipeline.assets.config_sources import report_config_versions
 from simart_pipeline.ckm.grid import scene_tiles
-from simart_pipeline.config import load_scene_config
 from simart_pipeline.definitions import build_definitions
 from simart_pipeline.radio.materials import WEATHER_GROUP
 

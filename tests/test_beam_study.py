@@ -148,8 +148,6 @@ def beam_tiny_run(tmp_path_factory):
 
 
 def test_beam_prediction_asset_splits_by_flight_and_reports_every_row(beam_tiny_run):
-    import json
-
     import xarray as xr
 
     from conftest import TESTS
