@@ -8,6 +8,7 @@ exit status; the stack trace is printed only with ``--verbose`` (:func:`main`).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gc
 import os
 import shutil
@@ -168,13 +169,29 @@ def _scene_on_instance(scene_dir, data_root, weathers, tiles, instance):
     return cfg, weathers, tiles, instance
 
 
+@contextlib.contextmanager
+def _collector_off_libraries():
+    """The libraries' objects (Dagster, Sionna, Mitsuba: millions) live as long as the process: out
+    of the collector's sight (``gc.freeze``), a full collection scans only what was made since
+    (0.3 s a collection otherwise)."""
+    gc.freeze()
+    try:
+        yield
+    finally:
+        gc.unfreeze()
+
+
 def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=None, verbose=False,
                       instance=None, progress=print, force: bool = False) -> dict[str, list[Path]]:
     """Register the scene and materialise every asset partition of it that is missing or stale
     (all of them with ``force``); returns the store paths. Each partition's line says whether it was
     computed, and why, or was already up to date."""
+    import dagster as dg
+
+    from simart_pipeline.assets import ALL_ASSETS, ALL_CHECKS
     from simart_pipeline.assets.config_sources import report_config_versions
-    from simart_pipeline.assets.staleness import scene_steps, stores_of
+    from simart_pipeline.assets.staleness import partition_status, scene_steps, stores_of
+    from simart_pipeline.assets.versioning import FORCE_TAG
     from simart_pipeline.definitions import build_definitions
 
     cfg, weathers, tiles, instance = _scene_on_instance(scene_dir, data_root, weathers, tiles, instance)
@@ -189,15 +206,35 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
     report_config_versions(instance, plan)
     steps = scene_steps(cfg, weathers, tiles)
     total = sum(len(s[0]) for s in steps)
-    # The libraries' objects (Dagster, Sionna, Mitsuba: millions) live as long as the process: out of
-    # the collector's sight, the full collection after each step below scans only what the steps made
-    # (0.3 s a collection otherwise).
-    gc.freeze()
-    try:
-        computed = _materialize_steps(steps, total, instance, plan, data_root, cfg, resources, run_config,
-                                      force, progress)
-    finally:
-        gc.unfreeze()
+    with _collector_off_libraries():
+        done = computed = 0
+        for names, key in steps:
+            label = _label(key)
+            stale = {}
+            for name in names:
+                ok, why = (False, "--force") if force else partition_status(
+                    instance, plan, name, key, data_root, stores_of(name, key, data_root, cfg))
+                if not ok:
+                    stale[name] = why
+            for i, name in enumerate(names):
+                status = f"computing ({stale[name]})" if name in stale else "up to date"
+                progress(f"[{done + i + 1:>2}/{total}] {name} ({label}): {status}")
+            if stale:
+                t0 = time.perf_counter()
+                result = dg.materialize([*ALL_ASSETS, *ALL_CHECKS], selection=list(stale), partition_key=key,
+                                        instance=instance, resources=resources, run_config=run_config,
+                                        raise_on_error=False, tags={FORCE_TAG: "true"} if force else None)
+                if not result.success:
+                    raise _failure(result, label)
+                # A run's outputs (a weather's rendered frames: gigabytes) hang in reference cycles of
+                # the run's objects until a full collection, which a few large objects never trigger:
+                # without this, each weather's step held the last one's frames too (2.4 GB peak on
+                # tests/scenes/beam_tiny at 480 x 360 against 1.3 GB with it).
+                del result
+                gc.collect()
+                computed += len(stale)
+                progress(f"        done in {time.perf_counter() - t0:.1f} s")
+            done += len(names)
     progress(f"scene {cfg.name!r}: {computed} of {total} asset partitions computed, {total - computed} up to date, "
              f"in {time.perf_counter() - t_start:.1f} s")
     out: dict[str, list[Path]] = {}
@@ -209,46 +246,6 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
 
     out["ckm"] = [map_path(data_root, cfg.name, name) for name in map_groups(cfg)]
     return out
-
-
-def _materialize_steps(steps, total, instance, plan, data_root, cfg, resources, run_config, force,
-                       progress) -> int:
-    """Run each of the scene's steps whose partitions are missing or stale; the number computed."""
-    import dagster as dg
-
-    from simart_pipeline.assets import ALL_ASSETS, ALL_CHECKS
-    from simart_pipeline.assets.staleness import partition_status, stores_of
-    from simart_pipeline.assets.versioning import FORCE_TAG
-
-    done = computed = 0
-    for names, key in steps:
-        label = _label(key)
-        stale = {}
-        for name in names:
-            ok, why = (False, "--force") if force else partition_status(
-                instance, plan, name, key, data_root, stores_of(name, key, data_root, cfg))
-            if not ok:
-                stale[name] = why
-        for i, name in enumerate(names):
-            status = f"computing ({stale[name]})" if name in stale else "up to date"
-            progress(f"[{done + i + 1:>2}/{total}] {name} ({label}): {status}")
-        if stale:
-            t0 = time.perf_counter()
-            result = dg.materialize([*ALL_ASSETS, *ALL_CHECKS], selection=list(stale), partition_key=key,
-                                    instance=instance, resources=resources, run_config=run_config,
-                                    raise_on_error=False, tags={FORCE_TAG: "true"} if force else None)
-            if not result.success:
-                raise _failure(result, label)
-            # A run's outputs (a weather's rendered frames: gigabytes) hang in reference cycles of
-            # the run's objects until a full collection, which a few large objects never trigger:
-            # without this, each weather's step held the last one's frames too (2.4 GB peak on
-            # tests/scenes/beam_tiny at 480 x 360 against 1.3 GB with it).
-            del result
-            gc.collect()
-            computed += len(stale)
-            progress(f"        done in {time.perf_counter() - t0:.1f} s")
-        done += len(names)
-    return computed
 
 
 def cmd_run(args) -> int:
