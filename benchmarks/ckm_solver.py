@@ -836,11 +836,21 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
     return out
 
 
+def sizes_of_run(sets, quick: bool, cells: dict | None = None,
+                 converged_cells: int | None = None) -> tuple[dict[str, int], int]:
+    """({set: compared cells}, converged-reference cells): ``cells`` and ``converged_cells`` where
+    given, else :data:`COMPARE_CELLS` and :data:`CONVERGED_REFERENCE_CELLS` (quick or full)."""
+    q = 0 if quick else 1
+    return ({s: (cells or {}).get(s, COMPARE_CELLS[s][q]) for s in sets},
+            CONVERGED_REFERENCE_CELLS[q] if converged_cells is None else converged_cells)
+
+
 def run_scene(name: str, spec: dict, num_rays: int, sets, quick: bool, seed: int, ray_counts=RAY_COUNTS,
               log=print, converged_points: int = 1, cells: dict | None = None,
               converged_cells: int | None = None, converged_map: bool = True) -> dict:
     """Every mechanism set of ``sets`` on one scene; a set's sizes from :data:`COMPARE_CELLS`,
-    :data:`LOOP_CELLS`, :data:`LOOP_BUDGET_S` (``quick`` picks the first of each pair)."""
+    :data:`LOOP_CELLS`, :data:`LOOP_BUDGET_S` (``quick`` picks the first of each pair), or ``cells``
+    {set: compared cells} and ``converged_cells`` where given (:func:`sizes_of_run`)."""
     nx, ny = (int(round(s / CELL_M)) for s in spec["size"])
     x = spec["centre"][0] - spec["size"][0] / 2 + (np.arange(nx) + 0.5) * CELL_M
     y = spec["centre"][1] - spec["size"][1] / 2 + (np.arange(ny) + 0.5) * CELL_M
@@ -856,13 +866,13 @@ def run_scene(name: str, spec: dict, num_rays: int, sets, quick: bool, seed: int
         t0 = time.perf_counter()
         xml = _radio_xml(spec, Path(tmp))
         out["scene_build_s"] = round(time.perf_counter() - t0, 3)
+        compare, n_converged = sizes_of_run(sets, quick, cells, converged_cells)
         for s in sets:
             t0 = time.perf_counter()
-            sizes = {"compare_cells": (cells or {}).get(s, COMPARE_CELLS[s][q]), "loop_cells": LOOP_CELLS[q],
+            sizes = {"compare_cells": compare[s], "loop_cells": LOOP_CELLS[q],
                      "loop_budget_s": LOOP_BUDGET_S[q], "check_cells": REFERENCE_CHECK_CELLS[q],
                      "converged_factor": CONVERGED_SAMPLES_FACTOR[q] if converged_map else 0,
-                     "converged_reference_cells": (CONVERGED_REFERENCE_CELLS[q] if converged_cells is None
-                                                   else converged_cells),
+                     "converged_reference_cells": n_converged,
                      "converged_reference_points": converged_points,
                      "repeats": WARM_REPEATS if s == "los_specular" else (0 if quick else 1)}
             out["sets"][s] = run_set(name, s, xml, spec, num_rays, order, sizes, ray_counts, sample)
@@ -1329,14 +1339,13 @@ def parse_args(argv=None) -> tuple[argparse.Namespace, dict[str, int]]:
 def main(argv=None) -> int:
     args, cells = parse_args(argv)
     q = 0 if args.quick else 1
+    compare_cells, converged_cells = sizes_of_run(args.sets, args.quick, cells, args.converged_cells)
     ray_counts = [int(n) for n in args.ray_counts] if args.ray_counts else (
         QUICK_RAY_COUNTS if args.quick else RAY_COUNTS)
     t0 = time.perf_counter()
     variant = engine.init()
     results = {"settings": {"quick": args.quick, "rays": int(args.rays), "sets": list(args.sets),
-                            "compare_cells": {k: cells.get(k, COMPARE_CELLS[k][q]) for k in args.sets},
-                            "converged_reference_cells": (CONVERGED_REFERENCE_CELLS[q] if args.converged_cells is None
-                                                          else args.converged_cells),
+                            "compare_cells": compare_cells, "converged_reference_cells": converged_cells,
                             "converged_map": not args.no_converged_map,
                             "per_cell_loop_cells": LOOP_CELLS[q], "per_cell_loop_budget_s": LOOP_BUDGET_S[q],
                             "variant": variant, "seed": args.seed, "ray_counts": list(ray_counts),

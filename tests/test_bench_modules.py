@@ -500,6 +500,10 @@ def test_bench_runs_ckm_solver_with_fewer_cells_and_no_convergence_diagnostics()
     assert max(args.ray_counts) <= args.rays  # no point above the main ray count
     defaults, none = ckm_solver.parse_args(["--out", "x"])
     assert none == {} and defaults.converged_cells is None and not defaults.no_converged_map
+    # what run_scene and the results' settings use: the given sizes, else the module's (full run)
+    assert ckm_solver.sizes_of_run(["diffraction", "all"], False, cells, 0) == ({"diffraction": 100, "all": 20}, 0)
+    assert ckm_solver.sizes_of_run(["diffraction"], False) == (
+        {"diffraction": ckm_solver.COMPARE_CELLS["diffraction"][1]}, ckm_solver.CONVERGED_REFERENCE_CELLS[1])
     for bad in ("diffraction", "diffraction=0", "mirrors=5"):
         with pytest.raises(SystemExit):
             ckm_solver.parse_args(["--out", "x", "--cells", bad])

@@ -207,12 +207,13 @@ def _instants(ds: xr.Dataset) -> Iterator[tuple[int, _Instant]]:
     step = max(1, BLOCK_BYTES // max(1, ds.nbytes // max(n, 1)))
     for start in range(0, n, step):
         block = ds.isel(time=slice(start, start + step)).load()
-        arrays = {name: (v.values, v.dims) for name, v in block.variables.items()}
+        # per variable, once a block: its values, the time axis (None: no time dim), the other dims
+        arrays = [(name, v.values, v.dims.index("time") if "time" in v.dims else None,
+                   tuple(d for d in v.dims if d != "time")) for name, v in block.variables.items()]
         for k in range(block.sizes["time"]):
             # the trailing Ellipsis keeps a 0-d array (not a bare str or scalar) where one value is left
-            yield start + k, _Instant({name: (a[(slice(None),) * dims.index("time") + (k, ...)] if "time" in dims else a,
-                                              tuple(d for d in dims if d != "time"))
-                                       for name, (a, dims) in arrays.items()})
+            yield start + k, _Instant({name: (a if axis is None else a[(slice(None),) * axis + (k, ...)], rest)
+                                       for name, a, axis, rest in arrays})
 
 
 class _Values:
