@@ -434,6 +434,42 @@ def test_no_path_is_lost_to_the_candidate_cap_with_diffraction(tiny_built, monke
     assert valid_unchecked < valid_one
 
 
+def test_a_learned_candidate_cap_gives_the_configured_caps_paths(tiny_built, monkeypatch):
+    """After its first call a radio scene sizes Sionna's candidate buffers from what it has seen.
+    Every later call must return exactly the paths of the configured cap: as is, and when the
+    learned cap is made too small (then the call is rerun at the configured cap)."""
+    from simart_pipeline.radio import tracer
+
+    cfg, _, _, out = tiny_built
+    rng = np.random.default_rng(1)
+    first = np.c_[rng.uniform(-40, 40, (3, 2)), np.full(3, 1.5)]
+    later = np.c_[rng.uniform(-40, 40, (9, 2)), np.full(9, 1.5)]
+    tx = np.array([b.position_m for b in cfg.base_stations])
+    rt = cfg.ray_tracing.model_copy(update={"diffraction": True, "samples_per_src": 10_000})
+    cfg = cfg.model_copy(update={"ray_tracing": rt})
+
+    def traced(learn: bool):
+        radio = RadioScene.from_config(meshes.radio_scene_file(out), cfg)
+        if not learn:
+            monkeypatch.setattr(radio, "_learned_cap", lambda num_rx, limit: limit)
+        radio.trace(tx, np.zeros((len(tx), 3)), first)
+        return radio, radio.trace(tx, np.zeros((len(tx), 3)), later)
+
+    _, want = traced(learn=False)
+    radio, got = traced(learn=True)
+    assert radio._learned_cap(len(later), cfg.ray_tracing.max_num_paths_per_src) < cfg.ray_tracing.max_num_paths_per_src
+    assert radio.learned_cap_retries == 0 and radio.cap_retries == 0
+    for f in ("a", "tau_s", "valid", "interaction", "theta_r", "phi_r"):
+        np.testing.assert_array_equal(getattr(got, f), getattr(want, f))
+    # A learned cap far too small: every later call reaches it and is rerun, with the same paths.
+    monkeypatch.setattr(tracer, "LEARNED_CAP_FLOOR", 1)
+    monkeypatch.setattr(tracer, "LEARNED_CAP_MARGIN", 1e-3)
+    radio, got = traced(learn=True)
+    assert radio.learned_cap_retries > 0 and radio.cap_retries == 0
+    for f in ("a", "tau_s", "valid", "interaction", "theta_r", "phi_r"):
+        np.testing.assert_array_equal(getattr(got, f), getattr(want, f))
+
+
 def test_a_diffracted_then_reflected_path_keeps_its_power_at_any_max_depth(monkeypatch):
     """Sionna's street canyon reduced to one building on a metal floor, iso V antennas, the
     receiver in the building's shadow. Each (diffraction, reflection) path must have the same

@@ -17,6 +17,13 @@ Two guards keep every path once and only once:
   receivers of a call and drops the rest without a word (diffraction keeps every candidate). The
   tracer counts the candidates of each call; a call that reaches the cap is split in two (or, for
   one receiver, rerun with a doubled cap) until none does.
+
+The cap also sizes Sionna's candidate buffers, which are zero-filled on every call: at the default
+1e6 per source that fill was a third of a moving-actor CIR trace (about 100 calls of a few
+receivers, each finding a few hundred candidates). So after its first call a radio scene sizes the
+cap from what it has seen (:meth:`RadioScene._learned_cap`); a call that reaches such a learned
+cap is rerun at the configured one. A run's paths are therefore those of the configured cap,
+whichever cap a call started with.
 """
 
 from __future__ import annotations
@@ -50,6 +57,11 @@ INVALID_ID = np.uint32(0xFFFFFFFF)
 # Actor parts are thin shells (sheet metal, glass panes, a rotor): their slab thickness (m).
 ACTOR_PART_THICKNESS_M = 0.01
 NO_ACTOR = -1
+# Learned candidate cap (see the module docstring): this many times the most candidates a
+# receiver has needed so far, rounded up to a power of two (few distinct kernels), and no less
+# than the floor.
+LEARNED_CAP_MARGIN = 4
+LEARNED_CAP_FLOOR = 2**14
 
 
 @dataclass
@@ -137,7 +149,9 @@ class RadioScene:
         self.weather_materials = dict(weather_materials)
         self.material_overrides = self._apply_weather(weather, weather_materials)
         self.solvers = {True: rt.PathSolver(deterministic=True), False: rt.PathSolver(deterministic=False)}
-        self.cap_retries = 0  # solver calls rerun because their candidates reached the cap
+        self.cap_retries = 0  # solver calls rerun because their candidates reached the configured cap
+        self.learned_cap_retries = 0  # ... reached a cap learned from earlier calls (rerun at the configured)
+        self._candidates_per_rx = None  # most candidates per source and receiver of any call so far
         self.actors: list = []
         self._actor_parts: list[tuple[int, object, np.ndarray]] = []  # (actor, SceneObject, body vertices)
         self._object_actor = np.zeros(0, np.int16)  # Sionna object id -> actor index or NO_ACTOR
@@ -312,10 +326,11 @@ class RadioScene:
         chunks = []
         try:
             step = receivers_per_call(rt_cfg, deterministic)
+            limit = int(rt_cfg.max_num_paths_per_src)
             for start in range(0, num_rx, step):
-                chunks += self._solve(list(range(start, min(start + step, num_rx))),
-                                      int(rt_cfg.max_num_paths_per_src), num_tx, rx_positions,
-                                      rx_velocities, rx_orientations_rad, deterministic)
+                idx = list(range(start, min(start + step, num_rx)))
+                chunks += self._solve(idx, self._learned_cap(len(idx), limit), num_tx, rx_positions,
+                                      rx_velocities, rx_orientations_rad, deterministic, limit)
         finally:
             for i in range(num_tx):
                 self.scene.remove(f"tx{i}")
@@ -332,10 +347,20 @@ class RadioScene:
             d.pop("vertices_m")
         return _sort(d)
 
+    def _learned_cap(self, num_rx: int, limit: int) -> int:
+        """The candidate cap of a call of ``num_rx`` receivers: the configured ``limit`` until a
+        call has been counted, then :data:`LEARNED_CAP_MARGIN` times the most candidates per
+        receiver seen, as a power of two of at least :data:`LEARNED_CAP_FLOOR`, at most ``limit``."""
+        if self._candidates_per_rx is None:
+            return limit
+        need = max(LEARNED_CAP_FLOOR, LEARNED_CAP_MARGIN * self._candidates_per_rx * num_rx)
+        return min(limit, 1 << int(np.ceil(np.log2(need))))
+
     def _solve(self, idx: list[int], cap: int, num_tx: int, rx_positions, rx_velocities,
-               rx_orientations_rad, deterministic: bool) -> list[dict[str, np.ndarray]]:
-        """One PathSolver call for receivers ``idx`` with ``max_num_paths_per_src = cap``; a call
-        whose candidates reach the cap is split in halves (one receiver: the cap doubles)."""
+               rx_orientations_rad, deterministic: bool, limit: int) -> list[dict[str, np.ndarray]]:
+        """One PathSolver call for receivers ``idx`` with ``max_num_paths_per_src = cap``. A call
+        whose candidates reach a cap below ``limit`` (a learned one) is rerun at ``limit``; one
+        that reaches ``limit`` is split in halves (one receiver: the cap doubles)."""
         import sionna.rt as rt
 
         rt_cfg = self.solver_config
@@ -368,16 +393,22 @@ class RadioScene:
             for i in idx:
                 self.scene.remove(f"rx{i}")
         if not saturated:
+            seen = max(counts, default=0) / len(idx)
+            self._candidates_per_rx = max(self._candidates_per_rx or 0.0, seen)
             return [out]
+        if cap < limit:
+            self.learned_cap_retries += 1
+            return self._solve(idx, limit, num_tx, rx_positions, rx_velocities, rx_orientations_rad,
+                               deterministic, limit)
         self.cap_retries += 1
         if len(idx) == 1:
             return self._solve(idx, 2 * cap, num_tx, rx_positions, rx_velocities,
-                               rx_orientations_rad, deterministic)
+                               rx_orientations_rad, deterministic, 2 * cap)
         half = len(idx) // 2
         return (self._solve(idx[:half], cap, num_tx, rx_positions, rx_velocities, rx_orientations_rad,
-                            deterministic)
+                            deterministic, limit)
                 + self._solve(idx[half:], cap, num_tx, rx_positions, rx_velocities, rx_orientations_rad,
-                              deterministic))
+                              deterministic, limit))
 
     def grid_scan(self, tx_positions: np.ndarray, tx_orientations_rad: np.ndarray,
                   grid_points_m: np.ndarray, deterministic: bool = True) -> TracedPaths:
