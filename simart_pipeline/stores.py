@@ -262,6 +262,13 @@ def write_directory(path: Path, fill: Callable[[Path], None],
     return path
 
 
+# write_store builds a store this size or smaller in memory and writes its files in one pass:
+# every zarr call goes through zarr's event-loop thread, and on disk each also waits for a file
+# thread (a session store: 558 objects, 1.4 s through the disk, 0.9 s through memory). Larger
+# stores are written straight to disk, so that a big one is never held twice.
+IN_MEMORY_WRITE_MAX_BYTES = 512 * 2**20
+
+
 def write_store(obj: xr.Dataset | xr.DataTree, path: str | Path) -> Path:
     """Write a dataset or a tree of datasets as one Zarr v3 store at ``path``, atomically, with
     consolidated metadata (written once, whole: the consolidated copy cannot go stale), so that
@@ -271,18 +278,26 @@ def write_store(obj: xr.Dataset | xr.DataTree, path: str | Path) -> Path:
 
     def fill(tmp: Path) -> None:
         import zarr
+        from zarr.storage import MemoryStore
 
+        in_memory: dict | None = {} if obj.nbytes <= IN_MEMORY_WRITE_MAX_BYTES else None
+        target = tmp if in_memory is None else MemoryStore(store_dict=in_memory)
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=".*Consolidated metadata.*")
             if isinstance(obj, xr.DataTree):
                 obj.map_over_datasets(_portable_strings).to_zarr(
-                    tmp, mode="w", zarr_format=3, consolidated=False)
+                    target, mode="w", zarr_format=3, consolidated=False)
             else:
-                _portable_strings(obj).to_zarr(tmp, mode="w", zarr_format=3, consolidated=False)
+                _portable_strings(obj).to_zarr(target, mode="w", zarr_format=3, consolidated=False)
             # Once, at the root, when everything is written: DataTree.to_zarr consolidates after
             # every group, each time over the whole store (12 passes, half of a session store's
             # 3 s write). The root's copy covers the nested groups.
-            zarr.consolidate_metadata(tmp, zarr_format=3)
+            zarr.consolidate_metadata(target, zarr_format=3)
+        if in_memory is not None:
+            for key in sorted(in_memory):
+                f = tmp / key
+                f.parent.mkdir(parents=True, exist_ok=True)
+                f.write_bytes(in_memory[key].to_bytes())
 
     return write_directory(path, fill)
 

@@ -58,6 +58,35 @@ def test_store_round_trip_and_overwrite(tmp_path):
     assert [p.name for p in path.parent.iterdir()] == ["sunny.zarr"]  # no leftovers
 
 
+def test_a_store_built_in_memory_equals_one_written_to_disk(tmp_path, monkeypatch):
+    """write_store builds small stores in memory and writes their files in one pass: the same
+    files, bytes and tree as a store written straight to disk, nested groups and strings
+    included, and one consolidated copy at the root that opens every group."""
+    import json
+
+    tree = xr.DataTree.from_dict({
+        "/": xr.Dataset(attrs={"scene": "demo"}),
+        "/uav0/cam": _ds(1.5).assign(label=("name", np.array(["road", "wall"]))),
+        "/uav0/imu": xr.Dataset({"acc_mps2": (("time", "axis"), np.arange(9.0).reshape(3, 3), {"units": "m/s^2"})},
+                                coords={"time": np.arange(3, dtype=np.int64)}),
+    })
+    stores.write_store(tree, tmp_path / "memory.zarr")
+    monkeypatch.setattr(stores, "IN_MEMORY_WRITE_MAX_BYTES", -1)
+    stores.write_store(tree, tmp_path / "disk.zarr")
+
+    def files(root):
+        return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+    mem, disk = files(tmp_path / "memory.zarr"), files(tmp_path / "disk.zarr")
+    assert mem.keys() == disk.keys() and "uav0/cam/v/c/0/0" in mem
+    assert all(mem[k] == disk[k] for k in mem)
+    back = stores.open_store(tmp_path / "memory.zarr", tree=True).load()
+    assert back.identical(tree)
+    nested = json.loads(mem["zarr.json"])["consolidated_metadata"]["metadata"]
+    assert {"uav0", "uav0/cam", "uav0/cam/v", "uav0/imu/acc_mps2"} <= set(nested)
+    assert not json.loads(mem["uav0/zarr.json"]).get("consolidated_metadata")  # the root's only
+
+
 def test_failed_write_leaves_last_good_version(tmp_path, monkeypatch):
     path = tmp_path / "s.zarr"
     stores.write_store(_ds(1.0), path)
