@@ -507,3 +507,41 @@ def test_bench_runs_ckm_solver_with_fewer_cells_and_no_convergence_diagnostics()
     for bad in ("diffraction", "diffraction=0", "mirrors=5"):
         with pytest.raises(SystemExit):
             ckm_solver.parse_args(["--out", "x", "--cells", bad])
+
+
+def test_rerun_alternates_baseline_and_this_commit_and_the_bench_asks_for_it(tmp_path, monkeypatch):
+    """--baseline REV --repeats 3: baseline and this commit's first runs alternate, baseline first,
+    and the speed-up is the ratio of their means. The full bench passes it where this clone has
+    the revision (a shallow clone has not: then it leaves it out and the target reads unmeasured)."""
+    from benchmarks import bench, rerun
+
+    order = []
+    walls = {"b": 120.0, "c": 90.0}
+
+    def fake_first_run(code, scene, tmp, tag, env):
+        order.append(tag)
+        return {"wall_s": walls[tag[0]] + len(order), "in_process_s": 80.0, "computed": []}
+
+    def fake_run(scene, data, env, cwd=None):
+        order.append("this")
+        return {"wall_s": 90.0 + len(order), "in_process_s": 80.0, "computed": []}
+
+    monkeypatch.setattr(rerun, "_extract", lambda rev, into: into)
+    monkeypatch.setattr(rerun, "_first_run_of", fake_first_run)
+    monkeypatch.setattr(rerun, "_run", fake_run)
+    assert rerun.main(["--out", str(tmp_path), "--scene", str(TINY), "--baseline", "abc", "--repeats", "3"]) == 0
+    assert order[:6] == ["b0", "this", "b1", "c1", "b2", "c2"]  # then the reruns
+    r = json.loads((tmp_path / "results.json").read_text())["baseline"]
+    base = [120.0 + 1, 120.0 + 3, 120.0 + 5]
+    this = [90.0 + 2, 90.0 + 4, 90.0 + 6]
+    assert r["first_run_speedup_vs_baseline"] == round(np.mean(base) / np.mean(this), 3)
+    assert "3 of each alternated" in (tmp_path / "report.md").read_text()
+    with pytest.raises(SystemExit):
+        rerun.main(["--out", str(tmp_path), "--baseline", "abc", "--repeats", "0"])
+
+    full = bench._rerun_args(False, tmp_path)
+    assert ("--baseline" in full) == bench._has_revision(bench.RERUN_BASELINE_REV)
+    assert bench._has_revision("HEAD") and not bench._has_revision("0" * 40)
+    monkeypatch.setattr(bench, "RERUN_BASELINE_REV", "0" * 40)
+    assert bench._rerun_args(False, tmp_path) == ["--out", str(tmp_path)]
+    assert bench._rerun_args(True, tmp_path) == ["--out", str(tmp_path), "--scene", str(bench.TINY)]
