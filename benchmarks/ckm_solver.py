@@ -545,9 +545,18 @@ def _pathsolver_reference(radio, tx, ori, centres, codebook, per_side: int = 3) 
     t = time.perf_counter()
     p_points = radio.trace(tx[None], ori[None], points)
     s_per_rx = (time.perf_counter() - t) / len(points)
-    p_centre = _slice_paths(p_points, slice(pool // 2, None, pool))  # offset (0, 0)
-    return (layers_from_moments(_reference_moments(p_centre, tau0, codebook)),
-            layers_from_moments(_reference_moments(p_points, tau0, codebook, pool=pool)), s_per_rx, p_points)
+    return (*_centre_and_pooled_layers(p_points, tau0, codebook, pool), s_per_rx, p_points)
+
+
+def _centre_and_pooled_layers(paths, tau0_s: np.ndarray, codebook, pool: int) -> tuple[dict, dict]:
+    """Layers at the cell centres and over each cell's points pooled, from the paths of ``cells *
+    pool`` receivers (:func:`_cell_points`' order: ``pool`` consecutive per cell, the middle one at
+    offset (0, 0)); with ``pool`` 1 both are the centres'."""
+    centre = paths if pool == 1 else _slice_paths(paths, slice(pool // 2, None, pool))
+    at_centre = layers_from_moments(_reference_moments(centre, tau0_s, codebook))
+    if pool == 1:
+        return at_centre, at_centre
+    return at_centre, layers_from_moments(_reference_moments(paths, tau0_s, codebook, pool=pool))
 
 
 def reference_check(radio, tx, ori, centres_xyz: np.ndarray, fast_at: dict, ref_centre: dict, codebook,
@@ -592,15 +601,13 @@ def against_converged_reference(radio, tx, ori, centres_xyz: np.ndarray, fast_at
         paths = radio.trace(tx[None], ori[None], points, deterministic=False)
         s = time.perf_counter() - t
     tau0 = np.linalg.norm(centres_xyz - tx, axis=-1) / SPEED_OF_LIGHT
-    centre_paths = paths if points_per_cell == 1 else _slice_paths(paths, slice(4, None, 9))
-    ref = layers_from_moments(_reference_moments(centre_paths, tau0, codebook))
+    ref, pooled = _centre_and_pooled_layers(paths, tau0, codebook, points_per_cell)
     out = {"samples_per_src": int(samples), "generator": "default (non-deterministic)", "cells": int(len(centres_xyz)),
            "points_per_cell": points_per_cell, "s": round(s, 1)}
     out.update(reached_by_pathsolver=int(ref["has_path"].sum()),
                covered_of_reached_pct=_covered_of_reached_pct(fast_at["has_path"], ref["has_path"]),
                errors_vs_centre=_compare(fast_at, ref))
     if points_per_cell == 9:  # the cell: reached where any of its nine points is
-        pooled = layers_from_moments(_reference_moments(paths, tau0, codebook, pool=9))
         out.update(reached_by_pathsolver_cell_points=int(pooled["has_path"].sum()),
                    covered_of_reached_pct_cell_points=_covered_of_reached_pct(fast_at["has_path"], pooled["has_path"]),
                    errors_vs_cell_points=_compare(fast_at, pooled))

@@ -545,3 +545,32 @@ def test_rerun_alternates_baseline_and_this_commit_and_the_bench_asks_for_it(tmp
     monkeypatch.setattr(bench, "RERUN_BASELINE_REV", "0" * 40)
     assert bench._rerun_args(False, tmp_path) == ["--out", str(tmp_path)]
     assert bench._rerun_args(True, tmp_path) == ["--out", str(tmp_path), "--scene", str(bench.TINY)]
+
+
+def test_centre_and_pooled_reference_layers_known_answer(tiny_built):
+    """The reference's n x n pooling: nine copies of one point pool to that point's own layers,
+    and the centre picked from a cell's nine receivers is the middle one."""
+    from benchmarks import ckm_solver as cs
+    from simart_pipeline.radio.tracer import RadioScene
+    from simart_pipeline.scene import meshes
+
+    cfg, _, _, out = tiny_built
+    radio = RadioScene.from_config(meshes.radio_scene_file(out), cfg)
+    bs = cfg.base_stations[0]
+    tx, ori = np.asarray(bs.position_m, float), np.deg2rad(np.asarray(bs.orientation_deg, float))
+    centres = np.array([[-30.0, 25.0, 1.5], [20.0, -30.0, 1.5]])
+    tau0 = np.linalg.norm(centres - tx, axis=-1) / cs.SPEED_OF_LIGHT
+    codebook = np.eye(radio.scene.tx_array.num_ant, dtype=np.complex64)
+
+    alone, same = cs._centre_and_pooled_layers(radio.trace(tx[None], ori[None], centres), tau0, codebook, 1)
+    assert alone is same and alone["has_path"].all()
+    copies = radio.trace(tx[None], ori[None], np.repeat(centres, 9, axis=0))
+    centre, pooled = cs._centre_and_pooled_layers(copies, tau0, codebook, 9)
+    spread = cs._cell_points(centres, 3)
+    centre_of_spread, pooled_spread = cs._centre_and_pooled_layers(
+        radio.trace(tx[None], ori[None], spread), tau0, codebook, 9)
+    for name in ("path_gain_db", "toa_s", "rms_delay_spread_s"):
+        np.testing.assert_allclose(pooled[name], alone[name], rtol=1e-5, atol=1e-12, err_msg=name)
+        np.testing.assert_allclose(centre[name], alone[name], rtol=1e-5, atol=1e-12, err_msg=name)
+        np.testing.assert_allclose(centre_of_spread[name], alone[name], rtol=1e-5, atol=1e-12, err_msg=name)
+    assert not np.allclose(pooled_spread["path_gain_db"], alone["path_gain_db"], atol=1e-6)  # the points differ
