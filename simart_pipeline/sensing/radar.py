@@ -20,7 +20,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.signal
 
 from simart_pipeline.config import Ofdm
 from simart_pipeline.link.ofdm import (channel_frequency_response, slot_duration_s,
@@ -127,6 +126,9 @@ def range_doppler_map(H, ofdm: Ofdm, *, range_oversampling: int = 1, doppler_ove
     spacing_hz = float(ofdm.subcarrier_spacing_hz)
     t_sym = symbol_duration_s(ofdm)
     wavelength_m = SPEED_OF_LIGHT_MPS / float(ofdm.carrier_frequency_hz)
+
+    import scipy.signal  # here, not at module level: its import takes about 0.9 s, which every
+    #                      `simart run` (an unchanged rerun included) paid on loading the assets
 
     w_k = scipy.signal.get_window(window, num_subcarriers, fftbins=True)
     v_n = scipy.signal.get_window(window, num_symbols, fftbins=True)
