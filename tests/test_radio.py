@@ -451,13 +451,15 @@ def test_a_learned_candidate_cap_gives_the_configured_caps_paths(tiny_built, mon
     def traced(learn: bool):
         radio = RadioScene.from_config(meshes.radio_scene_file(out), cfg)
         if not learn:
-            monkeypatch.setattr(radio, "_learned_cap", lambda num_rx, limit: limit)
+            monkeypatch.setattr(radio, "_learned_cap", lambda num_rx, limit, deterministic=True: limit)
         radio.trace(tx, np.zeros((len(tx), 3)), first)
         return radio, radio.trace(tx, np.zeros((len(tx), 3)), later)
 
     _, want = traced(learn=False)
     radio, got = traced(learn=True)
-    assert radio._learned_cap(len(later), cfg.ray_tracing.max_num_paths_per_src) < cfg.ray_tracing.max_num_paths_per_src
+    limit = cfg.ray_tracing.max_num_paths_per_src
+    assert radio._learned_cap(len(later), limit) < limit
+    assert radio._learned_cap(len(later), limit, deterministic=False) == limit  # not learned for that generator
     assert radio.learned_cap_retries == 0 and radio.cap_retries == 0
     for f in ("a", "tau_s", "valid", "interaction", "theta_r", "phi_r"):
         np.testing.assert_array_equal(getattr(got, f), getattr(want, f))

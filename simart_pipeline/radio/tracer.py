@@ -151,7 +151,9 @@ class RadioScene:
         self.solvers = {True: rt.PathSolver(deterministic=True), False: rt.PathSolver(deterministic=False)}
         self.cap_retries = 0  # solver calls rerun because their candidates reached the configured cap
         self.learned_cap_retries = 0  # ... reached a cap learned from earlier calls (rerun at the configured)
-        self._candidates_per_rx = None  # most candidates per source and receiver of any call so far
+        # most candidates per source and receiver of any call so far, per candidate generator
+        # (deterministic or Sionna's default: the default stores more per receiver)
+        self._candidates_per_rx: dict[bool, float] = {}
         self.actors: list = []
         self._actor_parts: list[tuple[int, object, np.ndarray]] = []  # (actor, SceneObject, body vertices)
         self._object_actor = np.zeros(0, np.int16)  # Sionna object id -> actor index or NO_ACTOR
@@ -329,8 +331,9 @@ class RadioScene:
             limit = int(rt_cfg.max_num_paths_per_src)
             for start in range(0, num_rx, step):
                 idx = list(range(start, min(start + step, num_rx)))
-                chunks += self._solve(idx, self._learned_cap(len(idx), limit), num_tx, rx_positions,
-                                      rx_velocities, rx_orientations_rad, deterministic, limit)
+                cap = self._learned_cap(len(idx), limit, deterministic)
+                chunks += self._solve(idx, cap, num_tx, rx_positions, rx_velocities, rx_orientations_rad,
+                                      deterministic, limit)
         finally:
             for i in range(num_tx):
                 self.scene.remove(f"tx{i}")
@@ -347,13 +350,15 @@ class RadioScene:
             d.pop("vertices_m")
         return _sort(d)
 
-    def _learned_cap(self, num_rx: int, limit: int) -> int:
+    def _learned_cap(self, num_rx: int, limit: int, deterministic: bool = True) -> int:
         """The candidate cap of a call of ``num_rx`` receivers: the configured ``limit`` until a
-        call has been counted, then :data:`LEARNED_CAP_MARGIN` times the most candidates per
-        receiver seen, as a power of two of at least :data:`LEARNED_CAP_FLOOR`, at most ``limit``."""
-        if self._candidates_per_rx is None:
+        call of the same candidate generator has been counted, then :data:`LEARNED_CAP_MARGIN`
+        times the most candidates per receiver seen, as a power of two of at least
+        :data:`LEARNED_CAP_FLOOR`, at most ``limit``."""
+        per_rx = self._candidates_per_rx.get(deterministic)
+        if per_rx is None:
             return limit
-        need = max(LEARNED_CAP_FLOOR, LEARNED_CAP_MARGIN * self._candidates_per_rx * num_rx)
+        need = max(LEARNED_CAP_FLOOR, LEARNED_CAP_MARGIN * per_rx * num_rx)
         return min(limit, 1 << int(np.ceil(np.log2(need))))
 
     def _solve(self, idx: list[int], cap: int, num_tx: int, rx_positions, rx_velocities,
@@ -394,7 +399,7 @@ class RadioScene:
                 self.scene.remove(f"rx{i}")
         if not saturated:
             seen = max(counts, default=0) / len(idx)
-            self._candidates_per_rx = max(self._candidates_per_rx or 0.0, seen)
+            self._candidates_per_rx[deterministic] = max(self._candidates_per_rx.get(deterministic, 0.0), seen)
             return [out]
         if cap < limit:
             self.learned_cap_retries += 1
