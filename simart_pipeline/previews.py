@@ -85,8 +85,8 @@ def heatmaps(panels: list[tuple[str, np.ndarray, str]], x: np.ndarray, y: np.nda
     """One figure of several maps over the building outlines: ``panels`` = (name, values [y, x], label).
 
     The panels share their axes (one extent), so only the outer ones carry tick labels, and the
-    spacing is fixed rather than fitted: matplotlib's tight layout measured every tick label of
-    every panel and took most of a CKM map step's time."""
+    spacing is fixed rather than fitted: matplotlib's tight layout measures every tick label of
+    every panel (a nine-panel map: 1.1 -> 0.9 s)."""
     nrows = max(1, -(-len(panels) // ncols))
     fig, axes = plt.subplots(nrows, ncols, figsize=(4.2 * ncols, 3.4 * nrows), squeeze=False,
                              sharex=True, sharey=True)

@@ -264,7 +264,7 @@ def write_directory(path: Path, fill: Callable[[Path], None],
 
 # write_store builds a store this size or smaller in memory and writes its files in one pass:
 # every zarr call goes through zarr's event-loop thread, and on disk each also waits for a file
-# thread (a session store: 558 objects, 1.4 s through the disk, 0.9 s through memory). Larger
+# thread (a session store: 558 objects, 1.4 s through the disk, 1.0 s through memory). Larger
 # stores are written straight to disk, so that a big one is never held twice.
 IN_MEMORY_WRITE_MAX_BYTES = 512 * 2**20
 
