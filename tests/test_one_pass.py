@@ -957,7 +957,7 @@ def test_diffraction_is_deterministic_and_batch_independent(tmp_path, sampled, r
     radio = RadioScene.from_config(_box_and_ground_scene(tmp_path, True), _cfg())
     x, y = _axes(0.0, 20, 0.0, 20, 2.0)
     codebook = np.ones((1, 1), complex)
-    kw = dict(diffraction=True, codebook=codebook, min_hits_for_power=1 if resample == 1 else 20,
+    kw = dict(diffraction=True, codebook=codebook, min_hits_for_power=1 if resample == 1 else 50,
               diffuse_reflection=sampled, refraction=sampled, diffraction_resample_factor=resample)
     a = op.one_pass_moments(radio, np.array([0.0, 0.0, 10.0]), np.zeros(3), x, y, [1.5], 200_000, 2, **kw)
     b = op.one_pass_moments(radio, np.array([0.0, 0.0, 10.0]), np.zeros(3), x, y, [1.5], 200_000, 2, **kw)
@@ -972,7 +972,7 @@ def test_diffraction_is_deterministic_and_batch_independent(tmp_path, sampled, r
         assert a.second_pass["pairs"] >= 1 and a.second_pass == c.second_pass
 
 
-# --- refraction and diffuse reflection: one drawn interaction per hit -------------------------------
+# --- refraction (split) and diffuse reflection (drawn) --------------------------------------------
 
 
 def _slab_rt(eta, cos_i, thickness):
@@ -1014,37 +1014,43 @@ def _db_errors(ours, ref):
     return 10 * np.log10(ours / ref)
 
 
-@pytest.mark.parametrize("tx_pol", ["V", "H"])
-def test_refraction_through_one_wall_follows_the_itu_slab_transmission(tmp_path, tx_pol):
-    """Cells behind a 10 cm concrete slab get the free-space gain times the ITU slab's |T|^2 per polarisation
-    (TE/TM split on the wall's normal), with refraction alone (every hit ray goes through: the
-    tolerance is the line-of-sight one) and with specular reflection also on (a ray goes through
-    with probability P = |T E|^2 / (|R E|^2 + |T E|^2) and is then weighted 1 / P in power: the
-    second moment of a hit is E[f^2 / P], which sets the bound). The delay is the straight
-    distance (the image source does not move) and nothing is line of sight."""
-    thickness = 0.1
+def _concrete_wall(tmp_path, tx_pol: str, thickness: float):
+    """A concrete slab at x = 12 m, an iso ``tx_pol`` source at (0, 0, 6) and a grid behind the wall:
+    (radio, tx, x, y, sub-cell directions [ny, nx, SUB*SUB, 3], distances, the ITU slab
+    coefficients (r_te, r_tm, t_te, t_tm), the TE unit vectors e_s and the field's TE / TM parts)."""
     xml = _write_scene(tmp_path / "w", {"wall": (_wall(12.0), "concrete")}, thickness)
     radio = RadioScene.from_config(xml, _cfg(polarization=tx_pol))
     tx = np.array([0.0, 0.0, 6.0])
     x, y = _axes(13.0, 5, -8.0, 8, 2.0)
     eta = _eta(*_itu(5.24, 0.0, 0.0462, 0.7822))  # concrete
-    p = _sub_points(x, y, 2.0, 1.5)
-    v = p - tx
+    v = _sub_points(x, y, 2.0, 1.5) - tx
     dist = np.linalg.norm(v, axis=-1)
     d = v / dist[..., None]
-    n = np.array([-1.0, 0, 0])
-    r_te, r_tm, t_te, t_tm = _slab_rt(eta, d[..., 0], thickness)
+    coefficients = _slab_rt(eta, d[..., 0], thickness)
     e0 = _sph(d)[0 if tx_pol == "V" else 1]  # iso element: unit field along theta-hat or phi-hat
-    e_s = np.cross(d, n)
+    e_s = np.cross(d, np.array([-1.0, 0, 0]))
     e_s /= np.linalg.norm(e_s, axis=-1, keepdims=True)
     a_s, a_p = (e0 * e_s).sum(-1), (e0 * np.cross(e_s, d)).sum(-1)
+    return radio, tx, x, y, d, dist, coefficients, e_s, a_s, a_p
+
+
+@pytest.mark.parametrize("tx_pol", ["V", "H"])
+def test_refraction_through_one_wall_follows_the_itu_slab_transmission(tmp_path, tx_pol):
+    """Cells behind a 10 cm concrete slab get the free-space gain times the ITU slab's |T|^2 per polarisation
+    (TE/TM split on the wall's normal), with refraction alone (every hit ray goes through: the
+    tolerance is the line-of-sight one), and with specular reflection also on the same moments:
+    a hit is split into its reflected and its transmitted ray, which goes on with T E exactly (a
+    draw between the two, with probability P = |T E|^2 / (|R E|^2 + |T E|^2) and weight 1 / P,
+    left whole streets to a few heavy rays). The delay is the straight distance (the image source
+    does not move) and nothing is line of sight."""
+    radio, tx, x, y, d, dist, (r_te, r_tm, t_te, t_tm), e_s, a_s, a_p = _concrete_wall(tmp_path, tx_pol, 0.1)
     assert 0.2 < (np.abs(a_s) ** 2).mean() < 0.8  # both TE and TM are checked
     field = (t_te * a_s)[..., None] * e_s + (t_tm * a_p)[..., None] * np.cross(e_s, d)
     spread = (LAM / (4 * np.pi * dist)) ** 2
     f = {None: (np.abs(field) ** 2).sum(-1) * spread, "V": np.abs((field * _sph(d)[0]).sum(-1)) ** 2 * spread}
     prob = (np.abs(t_te * a_s) ** 2 + np.abs(t_tm * a_p) ** 2) / (
         np.abs(t_te * a_s) ** 2 + np.abs(t_tm * a_p) ** 2 + np.abs(r_te * a_s) ** 2 + np.abs(r_tm * a_p) ** 2)
-    assert 0.2 < prob.mean() < 0.8
+    assert 0.2 < prob.mean() < 0.8  # the wall reflects and transmits: the split matters
     X, Y = np.meshgrid(x, y)
     centre_delay = np.linalg.norm(np.stack([X, Y, np.full_like(X, 1.5)], -1) - tx, axis=-1) / const.c
     for pol in (None, "V"):
@@ -1054,13 +1060,40 @@ def test_refraction_through_one_wall_follows_the_itu_slab_transmission(tmp_path,
         assert (np.abs(m.power[0] / f[pol].mean(-1) - 1) < _mc_bound(m.count[0], f[pol])).all(), pol
         # exact but for the spawn offset off the face (Mitsuba's ray epsilon, 70 um here: 0.2 ps)
         np.testing.assert_allclose(m.layers()["toa_s"][0], centre_delay, rtol=0, atol=1e-12)
-    m = op.one_pass_moments(radio, tx, np.zeros(3), x, y, np.array([1.5]), 4_000_000, 1, refraction=True)
-    hits = m.count[0] / prob.mean(-1)  # rays that hit the wall towards the cell
-    g = f[None]
-    sd = np.sqrt((g**2 / prob).mean(-1) / g.mean(-1) ** 2 / hits)  # relative
-    assert (np.abs(m.power[0] / g.mean(-1) - 1) < 4.5 * sd).all() and sd.max() < 0.1
-    total_sd = np.sqrt(((sd * g.mean(-1)) ** 2).sum()) / g.mean(-1).sum()
-    assert abs(m.power[0].sum() / g.mean(-1).sum() - 1) < 4.5 * total_sd
+    # with specular reflection on too, each hit is split: the transmitted ray goes on with T E
+    # exactly (no draw, no 1 / P weight), so behind the wall the moments are refraction alone's
+    alone = op.one_pass_moments(radio, tx, np.zeros(3), x, y, np.array([1.5]), 1_000_000, 1, refraction=True,
+                                specular_reflection=False)
+    both = op.one_pass_moments(radio, tx, np.zeros(3), x, y, np.array([1.5]), 1_000_000, 1, refraction=True)
+    np.testing.assert_array_equal(both.count, alone.count)
+    for f_ in ("power", "p_excess_delay_s", "p_excess_delay2_s2"):
+        np.testing.assert_allclose(getattr(both, f_), getattr(alone, f_), rtol=1e-6, err_msg=f_)
+
+
+def test_a_weak_transmission_goes_on_by_russian_roulette_and_stays_unbiased(tmp_path):
+    """A 35 cm concrete slab transmits about 0.4 % of a hit's energy: in a split, the transmitted ray
+    goes on with probability q = share / SPLIT_MIN_SHARE (about 0.1 here), weighted 1 / q. Behind
+    the wall the cell means are still the ITU slab's |T|^2 times free space, within the roulette's
+    own Monte-Carlo bound (relative variance E[f^2 (1 - q) / q] / E[f]^2 / hits per cell, the hits
+    being those of refraction alone, where every hit goes through), cell by cell and over the grid."""
+    radio, tx, x, y, d, dist, (r_te, r_tm, t_te, t_tm), e_s, a_s, a_p = _concrete_wall(tmp_path, "V", 0.35)
+    w_t = np.abs(t_te * a_s) ** 2 + np.abs(t_tm * a_p) ** 2
+    share = w_t / (w_t + np.abs(r_te * a_s) ** 2 + np.abs(r_tm * a_p) ** 2)
+    q = np.minimum(share / sb.SPLIT_MIN_SHARE, 1.0)
+    assert 0.05 < q.min() and q.max() < 0.2  # the roulette decides
+    field = (t_te * a_s)[..., None] * e_s + (t_tm * a_p)[..., None] * np.cross(e_s, d)
+    f = (np.abs(field) ** 2).sum(-1) * (LAM / (4 * np.pi * dist)) ** 2
+    n = 4_000_000
+    alone = op.one_pass_moments(radio, tx, np.zeros(3), x, y, np.array([1.5]), n, 1, refraction=True,
+                                specular_reflection=False)
+    both = op.one_pass_moments(radio, tx, np.zeros(3), x, y, np.array([1.5]), n, 1, refraction=True)
+    assert both.count.sum() < 0.3 * alone.count.sum()  # most transmitted rays stopped
+    hits = alone.count[0]
+    assert (hits > 300).all()
+    rel_sd = np.sqrt((f**2 * (1 - q) / q).mean(-1) / f.mean(-1) ** 2 / hits + _mc_bound(hits, f) ** 2 / 4.5**2)
+    assert (np.abs(both.power[0] / f.mean(-1) - 1) < 4.5 * rel_sd).all()
+    total_sd = np.sqrt(((rel_sd * f.mean(-1)) ** 2).sum()) / f.mean(-1).sum()
+    assert abs(both.power[0].sum() / f.mean(-1).sum() - 1) < 4.5 * total_sd and total_sd < 0.05
 
 
 def test_diffuse_lambertian_ground_scatters_the_reflected_energy(tmp_path):
@@ -1189,6 +1222,25 @@ def test_refraction_agrees_with_sionna_radio_map_solver():
     # refracted rays reach cells that line of sight and reflections leave dark
     spec = op.one_pass_moments(radio, tx, ori, x, y, np.array([1.5]), n, 3)
     assert (outdoor & (m.power[0] > 0) & (spec.power[0] == 0)).sum() > 0
+
+
+def test_pathsolvers_diffuse_model_drops_only_what_follows_a_diffuse_reflection(tmp_path):
+    """``diffuse_last_only`` (PathSolver's model: a diffuse reflection is a path's last interaction)
+    ends a diffused ray at its next hit and changes nothing else: at depth 1 nothing follows any
+    interaction, so the moments are bitwise the full model's; at depth 2 the same rays make the
+    same deposits up to their diffuse bounce's next hit, so every cell holds at most the full
+    model's power and hits, and less where a ray scattered by the ground reaches it via the wall."""
+    radio = _ground_and_wall(tmp_path, patterns=False)
+    x, y = _axes(-4.0, 8, -6.0, 6, 2.0)
+    args = (radio, np.array([0.0, 1.0, 8.0]), np.array([0.2, 0.1, 0.0]), x, y, np.array([1.5]), 200_000)
+    kw = dict(diffuse_reflection=True, refraction=True, rx_polarization="V")
+    full1, last1 = (op.one_pass_moments(*args, 1, diffuse_last_only=v, **kw) for v in (False, True))
+    for f in fields(CellMoments):
+        np.testing.assert_array_equal(getattr(last1, f.name), getattr(full1, f.name), err_msg=f.name)
+    full2, last2 = (op.one_pass_moments(*args, 2, diffuse_last_only=v, **kw) for v in (False, True))
+    assert (last2.count <= full2.count).all() and (last2.power <= full2.power * (1 + 1e-12)).all()
+    assert last2.count.sum() < full2.count.sum() and last2.power.sum() < full2.power.sum()
+    assert (last2.power >= full1.power * (1 - 1e-12)).all()  # the second interactions' other paths stay
 
 
 def test_sampled_interactions_are_deterministic_and_do_not_depend_on_the_batch_size(tmp_path):

@@ -309,7 +309,7 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                      diffuse_reflection: bool = False, diffraction_samples: int | None = None,
                      max_footprint_cells: float = DEFAULT_MAX_FOOTPRINT_CELLS,
                      solids: Solids | None = None, diffraction_with_reflections: bool = True,
-                     diffraction_resample_factor: int = 1) -> OnePassMoments:
+                     diffraction_resample_factor: int = 1, diffuse_last_only: bool = False) -> OnePassMoments:
     """Per-cell power moments of one transmitter over a grid, from one shoot-and-bounce pass.
 
     :param radio: :class:`simart_pipeline.radio.tracer.RadioScene` (mesh, materials of its
@@ -337,10 +337,16 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         (RadioMapSolver's); ``"V"`` / ``"H"``: an isotropic element of that polarisation
     :param los, specular_reflection, refraction, diffuse_reflection: interaction types as in
         Sionna RT. With ``refraction`` (straight through, ITU slab transmission) or
-        ``diffuse_reflection`` (the material's scattering coefficient, XPD and pattern) each ray
-        draws one interaction per hit in proportion to the energies of the enabled ones, weighted
-        by ``1 / sqrt(probability)`` (unbiased; random numbers hashed from the lattice index and
-        the depth, so still deterministic and batch-independent): :mod:`.shoot_bounce`.
+        ``diffuse_reflection`` (the material's scattering coefficient, XPD and pattern) a hit is
+        split into its transmitted ray (``T E`` exactly) and its reflected one, drawn between
+        specular and diffuse in proportion to their energies and weighted by ``1 /
+        sqrt(probability)``; a side of a split with less than ``SPLIT_MIN_SHARE`` of the hit's
+        energy goes on by Russian roulette (unbiased; random numbers hashed from the lattice index
+        and the depth, so still deterministic and batch-independent): :mod:`.shoot_bounce`.
+    :param diffuse_last_only: True: PathSolver's model of diffuse reflection, to compare the two
+        like for like: a diffusely reflected ray ends at its next hit (a diffuse reflection is the
+        last interaction of a path) and diffracted rays do not scatter (PathSolver leaves out paths
+        with both); False: any interaction after it, as RadioMapSolver
     :param max_footprint_cells: a crossing (other than line of sight) whose ray tube's footprint on
         the plane is larger than a cell spreads its deposit over the cells that footprint covers
         (a tent kernel normalised to the crossing's power, at most this many cells on a side, see
@@ -390,7 +396,7 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
     tracer = Tracer(radio, tx_position_m, rot, grid, int(num_rays), depth, los, rx_polarization,
                      with_beams=codebook is not None, specular=specular_reflection, refraction=refraction,
                      diffuse=diffuse_reflection, max_footprint_cells=max_footprint_cells,
-                     outdoor_fraction=frac)
+                     outdoor_fraction=frac, diffuse_last_only=diffuse_last_only)
     acc = _Accumulator(grid, tx_position_m, codebook, ant, rot, radio.wavelength_m)
     with_diffraction = diffraction and int(max_depth) > 0
     reflections_before = 1 if specular_reflection and depth >= 2 and diffraction_with_reflections else 0
