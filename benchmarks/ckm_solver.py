@@ -147,6 +147,11 @@ REFERENCE_SAMPLES = {"los_specular": 100_000, "diffraction": 1_000_000, "all": 1
 # the 95 % target leaves: the one-pass agrees with 5 x 5 (and 6 x 6) in 96.0 %, with 3 x 3 in 94.0 %
 # (2.5x the reference's time). Specular paths vary little within a 2 m cell: 3 x 3.
 REFERENCE_POINTS_PER_SIDE = {"los_specular": 3, "diffraction": 5, "all": 3}
+# With diffuse reflection the reference merges two PathSolver runs of the same receivers: every path
+# without a diffuse reflection from a run with diffuse reflection off at these samples (diffraction
+# needs 1e6, above; 1e6 with diffuse reflection costs 20 s per receiver), and the diffuse paths
+# from the run at REFERENCE_SAMPLES (:func:`merged_paths`).
+REFERENCE_NON_DIFFUSE_SAMPLES = 1_000_000
 SPREADS = ("asa_deg", "asd_deg", "zsa_deg", "zsd_deg")
 RAY_COUNTS = (10**5, 10**6, 10**7, 10**8)
 QUICK_RAY_COUNTS = (10**5, 10**6, 10**7)
@@ -520,6 +525,25 @@ def coverage(fast_at: dict, refs: dict, paths, pool: int = 9) -> dict:
                                         "missed": interaction_shares(inter, power, valid, pool, missed)}}
 
 
+def merged_paths(without_diffuse, with_diffuse):
+    """One TracedPaths of the same receivers: every path of ``without_diffuse`` (a PathSolver run
+    with diffuse reflection off) and the paths of ``with_diffuse`` (the same mechanisms with it on)
+    that hold a diffuse reflection. The other paths of ``with_diffuse`` are ``without_diffuse``'s
+    own (PathSolver's specular and diffracted paths do not depend on the diffuse switch), found with
+    its samples; each path is counted once."""
+    diffuse = (with_diffuse.interaction == int(InteractionKind.DIFFUSE)).any(axis=-2) & with_diffuse.valid
+
+    def cat(name):
+        a, b = getattr(without_diffuse, name), getattr(with_diffuse, name)
+        if a is None or b is None:
+            return None
+        if name == "valid":
+            b = diffuse
+        return np.concatenate([a, b], axis=-2 if name == "vertices_m" else -1)
+
+    return type(with_diffuse)(**{f.name: cat(f.name) for f in fields(with_diffuse)})
+
+
 def _slice_paths(paths, rows):
     """The TracedPaths of the receivers ``rows``."""
     return type(paths)(**{f.name: None if getattr(paths, f.name) is None else getattr(paths, f.name)[rows]
@@ -536,14 +560,25 @@ def _cell_points(centres: np.ndarray, per_side: int = 3) -> np.ndarray:
     return (centres[:, None, :] + np.stack([ox, oy, np.zeros(ox.size)], -1)[None]).reshape(-1, 3)
 
 
-def _pathsolver_reference(radio, tx, ori, centres, codebook, per_side: int = 3) -> tuple[dict, dict, float, object]:
+def _pathsolver_reference(radio, tx, ori, centres, codebook, per_side: int = 3,
+                          non_diffuse_samples: int | None = None) -> tuple[dict, dict, float, object]:
     """PathSolver at n x n points in each cell (``n = per_side``; the middle one its centre):
-    (centre layers, pooled n x n layers, s per receiver of the batched run, the run's TracedPaths)."""
+    (centre layers, pooled n x n layers, s per receiver of the batched run(s), the run's TracedPaths).
+    ``non_diffuse_samples`` (diffuse reflection on): the paths without a diffuse reflection from a
+    second run at these samples with it off (:func:`merged_paths`)."""
     tau0 = np.linalg.norm(centres - tx, axis=-1) / SPEED_OF_LIGHT
     points = _cell_points(centres, per_side)
     pool = per_side * per_side
     t = time.perf_counter()
     p_points = radio.trace(tx[None], ori[None], points)
+    if non_diffuse_samples is not None and radio.solver_config.diffuse_reflection:
+        config = radio.solver_config
+        radio.solver_config = config.model_copy(update={"samples_per_src": int(non_diffuse_samples),
+                                                        "diffuse_reflection": False})
+        try:
+            p_points = merged_paths(radio.trace(tx[None], ori[None], points), p_points)
+        finally:
+            radio.solver_config = config
     s_per_rx = (time.perf_counter() - t) / len(points)
     return (*_centre_and_pooled_layers(p_points, tau0, codebook, pool), s_per_rx, p_points)
 
@@ -761,11 +796,17 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
     cells_xyz = np.stack([X.ravel(), Y.ravel(), np.full(X.size, HEIGHT_M)], -1)
     retries0 = radio.cap_retries
     per_side = REFERENCE_POINTS_PER_SIDE[mechanisms]
-    ref_centre, ref_points, s_per_rx, paths = _pathsolver_reference(radio, tx, ori, cells_xyz[pick], codebook,
-                                                                    per_side)
+    ref_centre, ref_points, s_per_rx, paths = _pathsolver_reference(
+        radio, tx, ori, cells_xyz[pick], codebook, per_side,
+        non_diffuse_samples=REFERENCE_NON_DIFFUSE_SAMPLES if switches["diffuse_reflection"] else None)
     refs = {"vs_centre": ref_centre, "vs_cell_points": ref_points}
     fast_at = _layers_at(m, pick)
     cov = coverage(fast_at, refs, paths, pool=per_side * per_side)
+    # PathSolver keeps one path per primitive sequence where a diffuse reflection is followed by
+    # more interactions, and none with diffraction and diffuse reflection together: the one-pass
+    # in that model too (diffuse_last_only), to tell its own error from the models' difference
+    diffuse_model = (_compare(_layers_at(one_pass(num_rays, diffuse_last_only=True)(), pick), ref_points)
+                     if switches["diffuse_reflection"] else None)
     del paths
     check = (reference_check(radio, tx, ori, cells_xyz[pick], fast_at, ref_centre, codebook, sizes["check_cells"])
              if mechanisms in REFERENCE_CHECK_SETS else None)
@@ -806,7 +847,9 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
                      "ray_hits": int(m.count.sum()), "cells_per_s": round(n_cells / fast_s, 1),
                      "second_pass": m.second_pass,
                      "coverage_pct": _coverage_pct(fast["path_gain_db"][0], eligible)},
-        "pathsolver": {"samples_per_src": reference_samples(spec, mechanisms), "compared_cells": int(pick.size),
+        "pathsolver": {"samples_per_src": reference_samples(spec, mechanisms),
+                       "non_diffuse_samples_per_src": REFERENCE_NON_DIFFUSE_SAMPLES if switches["diffuse_reflection"] else None,
+                       "compared_cells": int(pick.size),
                        "points_per_cell": per_side * per_side, "cap_retries": int(radio.cap_retries - retries0),
                        "per_cell_call_s": round(per_call_s, 4), "per_cell_calls_timed": calls_timed,
                        "batched_s_per_cell": round(s_per_rx, 4),
@@ -823,6 +866,7 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
         "speedup_vs_batched_pathsolver": round(s_per_rx * n_outdoor / fast_s, 1),
         "errors_vs_centre": _compare(fast_at, ref_centre),
         "errors_vs_cell_points": _compare(fast_at, ref_points),
+        "errors_vs_cell_points_pathsolver_diffuse_model": diffuse_model,
         "radio_map_solver": _against_radio_map(
             one_pass(num_rays, None), radio_map, num_rays, n_cells, eligible, fast_s, repeats,
             one_pass(num_rays, None, diffraction_with_reflections=False) if switches["diffraction"] else None,
@@ -1036,6 +1080,12 @@ def report(results: dict) -> str:
         lines.append(_row(f"{name}, {st}, centre", r["errors_vs_centre"]))
         n = (r.get("pathsolver") or {}).get("points_per_cell", 9)  # results before session 17: 3 x 3
         lines.append(_row(f"{name}, {st}, points ({n})", r["errors_vs_cell_points"]))
+        if r.get("errors_vs_cell_points_pathsolver_diffuse_model"):
+            lines.append(_row(f"{name}, {st}, points ({n}), PathSolver's diffuse model",
+                              r["errors_vs_cell_points_pathsolver_diffuse_model"]))
+    lines += ["", "'PathSolver's diffuse model': the one-pass with a diffuse reflection as a path's last "
+              "interaction and none after a diffraction (`diffuse_last_only`), as PathSolver 2.2 finds them: it "
+              "keeps one path per primitive sequence where more interactions follow a diffuse reflection."]
     lines += (_coverage_lines(results) + _reference_check_lines(results) + _converged_reference_lines(results)
               + _converged_map_lines(results) + _second_pass_lines(results))
     lines += ["", "## Speed", "",

@@ -139,6 +139,21 @@ def _ckm_solver_targets() -> list[Target]:
                 t("path gain against RadioMapSolver (same mechanisms, its diffraction model), p50 <= 0.1 dB",
                   _ckm_solver(scene, ms, *_RMS_LIKE_FOR_LIKE, "p50"), "<=", cs.TARGET_RADIO_MAP_GAIN_P50_DB, "dB"),
             ]
+            # the same accuracy in PathSolver's own diffuse model (ckm_solver.run_set: it keeps one path
+            # per primitive sequence after a diffuse reflection), which tells the solver's error apart
+            like = ("errors_vs_cell_points_pathsolver_diffuse_model",)
+            ps = "in PathSolver's diffuse model,"
+            rows += [
+                t(f"{ps} path gain {q} against the cell's points' mean <= {b:g} dB",
+                  _ckm_solver(scene, ms, *like, "path_gain_db", q), "<=", b, "dB")
+                for q, b in (("p50", cs.TARGET_GAIN_P50_DB), ("p95", cs.TARGET_GAIN_P95_DB))] + [
+                t(f"{ps} RMS delay spread p50 <= 5 ns (cell points)",
+                  _ckm_solver(scene, ms, *like, "rms_delay_spread_ns", "p50"), "<=", cs.TARGET_DELAY_SPREAD_P50_NS, "ns"),
+                t(f"{ps} best beam = PathSolver's in >= 95 % of cells",
+                  _ckm_solver(scene, ms, *like, "best_beam_agreement_pct"), ">=", cs.TARGET_BEST_BEAM_PCT, "%"),
+                t(f"{ps} top-3: PathSolver's best beam among the one-pass's 3 best in >= 99 % of cells",
+                  _ckm_solver(scene, ms, *like, "best_beam_top3_agreement_pct"), ">=", cs.TARGET_TOP3_PCT, "%"),
+            ]
     return rows
 
 

@@ -574,3 +574,31 @@ def test_centre_and_pooled_reference_layers_known_answer(tiny_built):
         np.testing.assert_allclose(centre[name], alone[name], rtol=1e-5, atol=1e-12, err_msg=name)
         np.testing.assert_allclose(centre_of_spread[name], alone[name], rtol=1e-5, atol=1e-12, err_msg=name)
     assert not np.allclose(pooled_spread["path_gain_db"], alone["path_gain_db"], atol=1e-6)  # the points differ
+
+
+def test_merged_reference_takes_diffuse_paths_from_one_run_and_the_rest_from_the_other():
+    """ckm_solver.merged_paths: every path of the run without diffuse reflection, and of the run
+    with it only the paths that hold a diffuse reflection (the rest are the first run's own, found
+    with fewer samples): each counted once, fields concatenated along the path axis."""
+    from benchmarks import ckm_solver as cs
+    from simart_pipeline.radio.tracer import TracedPaths
+    from simart_pipeline.vocabulary import InteractionKind as K
+
+    def paths(kinds, valid, amp):  # one receiver, one transmitter, depth 2; kinds [path][depth]
+        n = len(kinds)
+        inter = np.array(kinds, np.uint8).T[None, None]  # [1, 1, depth, path]
+        z = np.zeros((1, 1, n), np.float32)
+        return TracedPaths(a=np.array(amp, np.complex64).reshape(1, 1, 1, 1, n), tau_s=np.arange(n, dtype=float)[None, None] * 1e-7,
+                           theta_t=z, phi_t=z, theta_r=z, phi_r=z, doppler_hz=z, interaction=inter,
+                           valid=np.array(valid)[None, None])
+
+    N, R, S, D = int(K.NONE), int(K.SPECULAR), int(K.DIFFUSE), int(K.DIFFRACTION)
+    without = paths([[N, N], [R, N], [D, R]], [True, True, True], [1.0, 0.5, 0.25])
+    with_ = paths([[N, N], [R, N], [S, N], [R, S], [S, N]], [True, True, True, True, False],
+                  [1.0, 0.5, 0.2, 0.1, 9.0])
+    m = cs.merged_paths(without, with_)
+    assert m.a.shape[-1] == 8 and m.interaction.shape == (1, 1, 2, 8)
+    np.testing.assert_array_equal(m.valid[0, 0], [True, True, True, False, False, True, True, False])
+    power = (np.abs(m.a[0, 0, 0, 0]) ** 2)[m.valid[0, 0]]
+    np.testing.assert_allclose(power.sum(), 1 + 0.25 + 0.0625 + 0.04 + 0.01, rtol=1e-6)
+    assert m.vertices_m is None and m.los[0, 0].sum() == 1

@@ -72,7 +72,9 @@ def _ckm_set(coverage=99.5, gain=(0.2, 2.0), top3=99.5, ratio=1.5):
     e = {"path_gain_db": {"p50": gain[0], "p95": gain[1]}, "rms_delay_spread_ns": {"p50": 1.0},
          "best_beam_agreement_pct": 96.0, "best_beam_top3_agreement_pct": top3,
          **{k: {"p50": 1.0} for k in ("asa_deg", "asd_deg", "zsa_deg")}, "zsd_deg": {"p50": None}}
+    like = {**e, "path_gain_db": {"p50": 0.1, "p95": 4.0}}  # in PathSolver's diffuse model
     return {"coverage": {"covered_of_reached_pct": coverage}, "errors_vs_cell_points": e,
+            "errors_vs_cell_points_pathsolver_diffuse_model": like,
             "errors_vs_centre": {"toa_ns": {"p50": 0.1}}, "speedup_vs_per_cell_loop": 150.0,
             "radio_map_solver": {"one_pass_over_radio_map_time": ratio, "at_one_pass_rays": {
                 "path_gain_agreement_with_one_pass": {"abs_diff_db": {"p50": 0.05, "p95": 0.5}}},
@@ -92,6 +94,10 @@ def test_ckm_solver_targets_read_each_scene_and_mechanism_set():
     assert _row(rows, 17, f"street_canyon, mechanisms `{ms}`, against PathSolver with the same: PathSolver's best beam")["met"]
     assert _row(rows, 17, "street_canyon, mechanisms `all`, against PathSolver with the same: angular")["figure"] == 1.0
     assert _row(rows, 17, "street_canyon, LoS + specular: time within 2x")["met"] is False
+    pre = f"street_canyon, mechanisms `{ms}`, against PathSolver with the same:"
+    like95 = _row(rows, 17, f"{pre} in PathSolver's diffuse model, path gain p95")
+    assert like95["met"] is False and like95["figure"] == 4.0
+    assert _row(rows, 17, f"{pre} path gain p95")["met"] is True
     assert _row(rows, 8, "street_canyon: path gain p50")["met"] is True
     # a scene without the set, a scene not run: not judged, with why
     assert "not in this run" in _row(rows, 17, f"munich, mechanisms `{ms}`, against PathSolver with the same: a value in")["why"]
