@@ -23,7 +23,9 @@ hit material, ``S`` its scattering coefficient, the energies are ``w_spec = (1 -
   ``RadioMaterial.sample``) leaves a path behind a thin wall, whose reflection is the unlikely
   draw, to a few rays of full weight: at 1e7 rays whole cells of the street canyon were 5-11 dB
   low, and 1e8 were needed. Split, the transmitted rays cost about 2.4x the traced segments at
-  depth 3.
+  depth 3. A side of a split with less than ``SPLIT_MIN_SHARE`` of the hit's energy goes on by
+  Russian roulette (with probability ``share / SPLIT_MIN_SHARE``, its field weighted by the
+  inverse square root).
 - Otherwise one interaction per ray and hit is drawn with probability ``w_k / W`` (``W`` their
   sum) and its field divided by ``sqrt(w_k / W)``.
 
@@ -464,7 +466,7 @@ class Tracer:
             np.asarray(outdoor_fraction, np.float32).reshape(-1))
         # A ray going down from at or below the lowest point of the scene and of the grid planes
         # meets nothing and crosses no plane: the rays transmitted through the ground are culled
-        # (a third of a split's transmitted rays in the street canyon)
+        # (a fifth of the first hits' transmitted rays in the street canyon)
         self.floor_z = opaque(min(float(self.scene.bbox().min.z) + 1e-3, float(np.min(grid.heights))))
         self.power_scale = opaque((4 * np.pi / num_rays) * (radio.wavelength_m / (4 * np.pi)) ** 2
                                   / (grid.dx * grid.dy))
