@@ -402,6 +402,25 @@ def test_a_duplicate_path_counts_once_and_a_near_equal_distinct_one_is_kept():
     assert np.sum(np.abs(out["a"][0, 0, 0, 0]) ** 2) == 3
 
 
+def test_a_path_with_a_non_finite_amplitude_is_no_path_and_is_counted():
+    """PathSolver 2.2 returned valid line-of-sight entries with NaN amplitudes (refraction, 1e6
+    samples): such an entry is marked invalid, the others (finite on every antenna pair) stay,
+    and the sum of a link's gain is finite again."""
+    from simart_pipeline.radio.tracer import drop_non_finite_paths
+
+    a = np.ones((2, 2, 1, 2, 3), np.complex64)  # [rx, rx_ant, tx, tx_ant, path]
+    a[0, 1, 0, 0, 1] = np.nan  # one antenna pair of receiver 0's path 1
+    a[1, :, 0, :, 2] = np.inf  # receiver 1's path 2, which is not valid anyway
+    valid = np.ones((2, 1, 3), bool)
+    valid[1, 0, 2] = False
+    out, dropped = drop_non_finite_paths({"a": a, "valid": valid})
+    assert dropped == 1
+    assert out["valid"][:, 0].tolist() == [[True, False, True], [True, True, False]]
+    assert np.isfinite(np.where(out["valid"][:, None, :, None, :], a, 0)).all()
+    same, none = drop_non_finite_paths(out | {"a": np.where(out["valid"][:, None, :, None, :], a, 0)})
+    assert none == 0 and same["valid"].tolist() == out["valid"].tolist()
+
+
 def test_no_path_is_lost_to_the_candidate_cap_with_diffraction(tiny_built, monkeypatch):
     """With diffraction Sionna keeps every candidate and silently drops those beyond
     max_num_paths_per_src (per source, over all receivers of a call). With a cap of 50 and 12
