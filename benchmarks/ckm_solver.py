@@ -237,10 +237,11 @@ def reference_samples(spec: dict, mechanisms: str) -> int:
 
 
 @contextlib.contextmanager
-def _samples(radio, samples: int):
-    """PathSolver calls of ``radio`` at ``samples`` per source inside the block, its own after."""
+def _samples(radio, samples: int, **settings):
+    """PathSolver calls of ``radio`` at ``samples`` per source (and its other ``settings``, such
+    as ``diffuse_reflection=False``) inside the block, its own after."""
     config = radio.solver_config
-    radio.solver_config = config.model_copy(update={"samples_per_src": int(samples)})
+    radio.solver_config = config.model_copy(update={"samples_per_src": int(samples), **settings})
     try:
         yield radio
     finally:
@@ -572,13 +573,8 @@ def _pathsolver_reference(radio, tx, ori, centres, codebook, per_side: int = 3,
     t = time.perf_counter()
     p_points = radio.trace(tx[None], ori[None], points)
     if non_diffuse_samples is not None and radio.solver_config.diffuse_reflection:
-        config = radio.solver_config
-        radio.solver_config = config.model_copy(update={"samples_per_src": int(non_diffuse_samples),
-                                                        "diffuse_reflection": False})
-        try:
+        with _samples(radio, non_diffuse_samples, diffuse_reflection=False):
             p_points = merged_paths(radio.trace(tx[None], ori[None], points), p_points)
-        finally:
-            radio.solver_config = config
     s_per_rx = (time.perf_counter() - t) / len(points)
     return (*_centre_and_pooled_layers(p_points, tau0, codebook, pool), s_per_rx, p_points)
 
