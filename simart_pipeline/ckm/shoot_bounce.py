@@ -753,13 +753,18 @@ class Tracer:
         dr, mi = self.dr, self.mi
         split = self.refraction and (self.specular or self.diffuse)
         if split:
-            # lanes [0, n): the reflected rays; [n, 2n): the transmitted ones, of the same hits
-            n_hits = dr.width(keep)
+            # lanes [0, n): the reflected rays of the n hits; [n, 2n): their transmitted ones (the
+            # misses are left out here, not carried twice to the compaction at the end)
+            hits = dr.compress(keep)
+            n_hits = dr.width(hits)
+            if n_hits == 0:
+                return None
             lane = dr.arange(mi.UInt32, 2 * n_hits)
             through = lane >= n_hits
-            src = dr.select(through, lane - n_hits, lane)
+            src = dr.gather(mi.UInt32, hits, dr.select(through, lane - n_hits, lane))
             st = {k: dr.gather(type(v), v, src) for k, v in st.items()}
-            t, ids, prim, keep = (dr.gather(type(v), v, src) for v in (t, ids, prim, keep))
+            t, ids, prim = (dr.gather(type(v), v, src) for v in (t, ids, prim))
+            keep = dr.full(mi.Bool, True, 2 * n_hits)
             # the transmitted ray's random numbers: a stream of its own, keyed by its parent's
             st["idx"] = dr.select(through, _hash32(st["idx"] ^ dr.opaque(mi.UInt32, _key(depth, _DRAW_SPLIT))),
                                   st["idx"])

@@ -9,7 +9,7 @@ interaction sequence, so that two runs compare entry by entry.
 Entries that hold no path (``valid`` false) are filled, never left as Sionna leaves them: ``a = 0``,
 ``tau_s = -1`` (an impossible delay), zero angles, Doppler and interaction points.
 
-Two guards keep every path once and only once:
+Three guards keep every path once and only once, and every kept one finite:
 
 - Duplicates: PathSolver sometimes returns one path twice (same objects and primitives, vertices
   millimetres apart), which adds 3 dB to a link's gain. :func:`drop_duplicate_paths` keeps the first.
