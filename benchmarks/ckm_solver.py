@@ -204,6 +204,11 @@ CONVERGED_REFERENCE_SAMPLES = 10**8
 # unbiased estimator; on Munich its 8x map is within 1.7 dB p95 of its 32x one), and the point
 # estimator at the default samples beside it (docs/ckm-one-pass.md, "Session 12").
 CONVERGED_MAP_SETS = ("diffraction",)
+# Time at equal Monte-Carlo error against RadioMapSolver (equal_error_front): each solver's map at
+# these ray counts (and the main one) against its own at the reference's rays (quick, full)
+EQUAL_ERROR_SETS = ("all",)
+EQUAL_ERROR_COUNTS = (10**6, 2 * 10**6, 3 * 10**6, 5 * 10**6)
+EQUAL_ERROR_REFERENCE_RAYS = (3 * 10**7, 10**8)
 CONVERGED_SAMPLES_FACTOR = (4, 16)  # (quick, full)
 # The second pass on undersampled cells (ckm.diffraction_resample_factor): its run-time/error front,
 # beside the converged map (off by default: docs/ckm-one-pass.md, "Session 15")
@@ -703,7 +708,7 @@ def _per_cell_loop_s(radio, tx, ori, cells_xyz: np.ndarray, budget_s: float = fl
 
 def _against_radio_map(one_pass_unpolarised, radio_map, num_rays: int, n_cells: int, eligible: np.ndarray,
                        one_pass_v_s: float, repeats: int = WARM_REPEATS, first_order_one_pass=None,
-                       radio_map_other_seed=None) -> dict:
+                       radio_map_other_seed=None, equal_error=None) -> dict:
     """The one-pass run like for like with RadioMapSolver (``|E|^2``, no V projection, every layer
     still produced; gain taken back to the whole cell area) against ``radio_map(n)`` at its
     default samples and at ``num_rays``: warm times, cells per second, path-gain agreement.
@@ -745,7 +750,63 @@ def _against_radio_map(one_pass_unpolarised, radio_map, num_rays: int, n_cells: 
         out["path_gain_agreement_like_for_like"] = agree
     if radio_map_other_seed is not None:
         out["radio_map_solver_other_seed"] = map_agreement(radio_map(num_rays)[0], radio_map_other_seed())
+    if equal_error is not None:
+        one_pass_at = equal_error["one_pass_at"]
+
+        def one_pass_db(n):
+            if n == num_rays:
+                return whole, warm_s
+            if n < num_rays:  # below one batch a kernel shape of its own: compile first
+                mm, _, s = _warm(one_pass_at(n), 1)
+            else:
+                mm, s = _timed(one_pass_at(n))
+            return whole_cell_db(mm), s
+
+        reference_rays = equal_error["reference_rays"]
+        # RadioMapSolver's reference at another seed: with the same seed a ray's random numbers
+        # depend on its index alone, and the first rays of the reference would be the count's own
+        rm_reference = _timed(lambda: equal_error["radio_map_other_seed"](reference_rays))
+        out["equal_error"] = equal_error_front(
+            {"one_pass": (one_pass_db, one_pass_db(reference_rays)),
+             "radio_map_solver": (lambda n: (radio_map(n)[0], radio_map(n)[2]), rm_reference)},
+            num_rays, equal_error["counts"], reference_rays)
+        if first_order_one_pass is not None:  # the models' own difference, at the reference's rays
+            lfl = whole_cell_db(one_pass_at(reference_rays, diffraction_with_reflections=False)())
+            out["equal_error"]["like_for_like_at_reference_rays"] = map_agreement(lfl, rm_reference[0])
     return out
+
+
+def equal_error_front(solvers: dict, num_rays: int, counts, reference_rays: int) -> dict:
+    """Run time at equal Monte-Carlo error. Each solver's path gain map at ``counts`` rays against
+    its own map at ``reference_rays`` (its converged limit: the error of a count is its Monte-Carlo
+    error, whatever the two solvers' models differ in): p50 / p95 of ``|dB|`` over the cells both
+    value, and the share of the reference's cells the count values. ``solvers``: {"one_pass":
+    (run, reference), "radio_map_solver": (run, reference)}, ``run(n)`` -> (map dB, NaN: no value;
+    warm s), ``reference``: (map, s).
+
+    ``one_pass_rays_at_radio_map_error``: the fewest one-pass rays of ``counts`` whose p50 and p95
+    are no larger and whose coverage is no smaller than RadioMapSolver's at ``num_rays``;
+    ``one_pass_over_radio_map_time_at_equal_error``: its time over RadioMapSolver's (None where no
+    count matches)."""
+    fronts = {}
+    for name, (run, (ref, ref_s)) in solvers.items():
+        points = []
+        for n in counts:
+            g, s = run(n)
+            agree = map_agreement(g, ref)
+            points.append({"rays": n, "warm_s": round(s, 3), "error_db": agree["abs_diff_db"],
+                           "covered_of_reference_pct": round(100.0 * agree["cells_both"] / max(agree["cells_b"], 1), 2)})
+        fronts[name] = {"reference_rays": reference_rays, "reference_s": round(ref_s, 1), "points": points}
+    rm = next((p for p in fronts["radio_map_solver"]["points"] if p["rays"] == num_rays), None)
+    match = None
+    if rm is not None:
+        match = next((p for p in fronts["one_pass"]["points"]
+                      if p["error_db"]["p50"] is not None and rm["error_db"]["p50"] is not None
+                      and p["error_db"]["p50"] <= rm["error_db"]["p50"] and p["error_db"]["p95"] <= rm["error_db"]["p95"]
+                      and p["covered_of_reference_pct"] >= rm["covered_of_reference_pct"]), None)
+    return {**fronts, "radio_map_solver_rays": num_rays,
+            "one_pass_rays_at_radio_map_error": None if match is None else match["rays"],
+            "one_pass_over_radio_map_time_at_equal_error": None if match is None else round(match["warm_s"] / rm["warm_s"], 3)}
 
 
 def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, order: dict, sizes: dict,
@@ -866,7 +927,12 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
         "radio_map_solver": _against_radio_map(
             one_pass(num_rays, None), radio_map, num_rays, n_cells, eligible, fast_s, repeats,
             one_pass(num_rays, None, diffraction_with_reflections=False) if switches["diffraction"] else None,
-            lambda: radio_map_path_gain_db(radio, other_seed, HEIGHT_M, num_rays)[0]),
+            lambda: radio_map_path_gain_db(radio, other_seed, HEIGHT_M, num_rays)[0],
+            {"counts": sorted({c for c in EQUAL_ERROR_COUNTS if c < num_rays} | {num_rays}),
+             "reference_rays": sizes["equal_error_reference_rays"],
+             "one_pass_at": lambda n, **kw: one_pass(n, None, **kw),
+             "radio_map_other_seed": lambda n: radio_map_path_gain_db(radio, other_seed, HEIGHT_M, n)[0]}
+            if mechanisms in EQUAL_ERROR_SETS and sizes.get("equal_error_reference_rays", 0) > num_rays else None),
     }
     if mechanisms in CONVERGED_MAP_SETS and sizes["converged_factor"] > 0:
         out["against_converged_map"] = against_converged_map(one_pass, num_rays, fast["path_gain_db"][0], eligible,
@@ -919,6 +985,7 @@ def run_scene(name: str, spec: dict, num_rays: int, sets, quick: bool, seed: int
             sizes = {"compare_cells": compare[s], "loop_cells": LOOP_CELLS[q],
                      "loop_budget_s": LOOP_BUDGET_S[q], "check_cells": REFERENCE_CHECK_CELLS[q],
                      "converged_factor": CONVERGED_SAMPLES_FACTOR[q] if converged_map else 0,
+                     "equal_error_reference_rays": EQUAL_ERROR_REFERENCE_RAYS[q] if converged_map else 0,
                      "converged_reference_cells": n_converged,
                      "converged_reference_points": converged_points,
                      "repeats": WARM_REPEATS if s == "los_specular" else (0 if quick else 1)}
@@ -967,6 +1034,13 @@ def targets(r: dict, mechanisms: str = "los_specular") -> dict[str, bool | None]
     radio_map = {"one_pass_within_2x_of_radio_map_solver":
                  _le(rm["one_pass_over_radio_map_time"], TARGET_RADIO_MAP_TIME_RATIO),
                  "path_gain_p50_vs_radio_map_solver_le_0.1_db": _le(a, TARGET_RADIO_MAP_GAIN_P50_DB)}
+    ee = rm.get("equal_error")  # at equal Monte-Carlo error (equal_error_front), where run
+    if ee is not None:
+        ratio = ee["one_pass_over_radio_map_time_at_equal_error"]
+        lfl = (ee.get("like_for_like_at_reference_rays") or {}).get("abs_diff_db", {}).get("p50")
+        radio_map.update({
+            "one_pass_within_2x_of_radio_map_solver_at_equal_error": False if ratio is None else ratio <= TARGET_RADIO_MAP_TIME_RATIO,
+            "path_gain_p50_vs_radio_map_solver_at_reference_rays_le_0.1_db": _le(lfl, TARGET_RADIO_MAP_GAIN_P50_DB)})
     if mechanisms == "los_specular":
         return {**speed,
                 "path_gain_p50_vs_cell_points_le_0.5_db": _le(e3["path_gain_db"]["p50"], TARGET_GAIN_P50_DB),
@@ -1103,7 +1177,7 @@ def report(results: dict) -> str:
                      f"{r['speedup_vs_per_cell_loop']} ({r['speedup_vs_per_cell_loop_all_cells']}) | "
                      f"{_fewer_samples(r.get('speedup_vs_per_cell_loop_at_fewest_samples'))} | "
                      f"{r['speedup_vs_batched_pathsolver']} | {r.get('wall_s', '-')} |")
-    lines += _radio_map_lines(results) + _rays_vs_error_lines(results)
+    lines += _radio_map_lines(results) + _equal_error_lines(results) + _rays_vs_error_lines(results)
     lines += ["", "## Targets", "",
               "Issue 8's on `los_specular` (speed-up >= 100 x per-cell loop; gain p50 <= 0.5 dB vs the cell's "
               "points' mean; ToA p50 <= 1 ns at the centre; best beam = PathSolver's incoherent best of the cell "
@@ -1249,6 +1323,37 @@ def _second_pass_lines(results: dict) -> list[str]:
                      f"{q.get('undersampled_cells', '-')} | {q.get('stretches', '-')} | {q.get('new_samples', '-')} | "
                      f"{q.get('still_undersampled', '-')} | {p['newly_valued']['cells_a']} | "
                      f"{_pp(p['newly_valued']['abs_diff_db'])} | {_pp(p['whole_map']['abs_diff_db'])} |")
+    return lines
+
+
+def _equal_error_lines(results: dict) -> list[str]:
+    rows = [(name, st, r["radio_map_solver"]["equal_error"]) for name, st, r in _each_set(results)
+            if (r.get("radio_map_solver") or {}).get("equal_error")]
+    if not rows:
+        return []
+    lines = ["", "## Time at equal Monte-Carlo error (RadioMapSolver)", "",
+             "Each solver's path gain map (the one-pass like for like: `|E|^2`, whole cell) against its own map "
+             "at the reference's rays (RadioMapSolver's at another seed): p50 / p95 of |dB| over the cells both "
+             "value, and the share of the reference's cells the count values. The match: the fewest one-pass rays "
+             "whose p50 and p95 are no larger and whose coverage is no smaller than RadioMapSolver's at the main "
+             "ray count; the like-for-like column is the two solvers' models against each other at the "
+             "reference's rays (RadioMapSolver's diffraction model; the Monte-Carlo floor of the main comparison "
+             "shrinks by sqrt(10)).", "",
+             "| scene | set | solver | rays | warm s | gain dB p50 / p95 | coverage % |", "|---|---|---|---|---|---|---|"]
+    for name, st, e in rows:
+        for solver in ("one_pass", "radio_map_solver"):
+            for p in e[solver]["points"]:
+                lines.append(f"| {name} | {st} | {solver} | {p['rays']:.0e} | {p['warm_s']} | "
+                             f"{_pp(p['error_db'])} | {p['covered_of_reference_pct']} |")
+    lines += ["", "| scene | set | RadioMapSolver rays | one-pass rays at its error | time ratio at equal error | "
+              "references (rays, s: one-pass / RadioMapSolver) | like for like at the reference's rays, p50 / p95 dB |",
+              "|---|---|---|---|---|---|---|"]
+    for name, st, e in rows:
+        lfl = e.get("like_for_like_at_reference_rays")
+        lines.append(f"| {name} | {st} | {e['radio_map_solver_rays']:.0e} | {_f(e['one_pass_rays_at_radio_map_error'])} | "
+                     f"{_f(e['one_pass_over_radio_map_time_at_equal_error'])} | {e['one_pass']['reference_rays']:.0e}: "
+                     f"{e['one_pass']['reference_s']} / {e['radio_map_solver']['reference_s']} | "
+                     f"{_pp(lfl['abs_diff_db']) if lfl else '-'} |")
     return lines
 
 

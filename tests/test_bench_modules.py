@@ -305,6 +305,13 @@ def _set_result(mechanisms: str, seed: int = 0) -> dict:
             "covered_of_reached_pct": cs._covered_of_reached_pct(fast["has_path"], ref["has_path"]),
             "errors_vs_centre": cs._compare(fast, ref), "errors_vs_cell_points": cs._compare(ref, ref),
             "reached_by_pathsolver_cell_points": 8, "covered_of_reached_pct_cell_points": 75.0}
+    if mechanisms in cs.EQUAL_ERROR_SETS:  # the one-pass reaches RadioMapSolver's 1e7-ray error at 1e6 rays
+        ref_map = np.array([-90.0, -100.0, -80.0])
+        run = {"one_pass": lambda n: (ref_map + 0.1 * (n < 10**6), n * 1e-6),
+               "radio_map_solver": lambda n: (ref_map + 0.5, n * 0.4e-6)}
+        r["radio_map_solver"]["equal_error"] = cs.equal_error_front(
+            {k: (f, (ref_map, 9.0)) for k, f in run.items()}, 10**7, [10**6, 10**7], 10**8)
+        r["radio_map_solver"]["equal_error"]["like_for_like_at_reference_rays"] = agree
     if mechanisms in cs.CONVERGED_MAP_SETS:
         truth = np.array([-90.0, -100.0, np.nan, -80.0])
         r["against_converged_map"] = {
@@ -362,6 +369,9 @@ def test_ckm_solver_targets_and_report_cover_every_mechanism_set(tmp_path):
     assert "| canyon | diffraction | 2.5 (1.25) | 0.15 / 0.285 (2) | 0.1 / 0.19 | 0.025 / 0.0475 |" in md
     assert "| canyon | los_specular | the full run | 0.025 / 0.0475 (2) | 0.1 / 0.19 | - |" in md
     assert sets["diffraction"]["targets_met"]["path_gain_p50_vs_radio_map_solver_le_0.1_db"] is False
+    # at equal Monte-Carlo error: the one-pass at 1e6 rays (1 s) against RadioMapSolver at 1e7 (4 s)
+    assert "## Time at equal Monte-Carlo error" in md and "| canyon | all | 1e+07 | 1e+06 | 0.25 |" in md
+    assert sets["all"]["targets_met"]["one_pass_within_2x_of_radio_map_solver_at_equal_error"] is True
     assert sets["los_specular"]["targets_met"]["path_gain_p50_vs_radio_map_solver_le_0.1_db"] is True
     conv = sets["diffraction"]["against_converged_reference"]
     assert "## Against a converged PathSolver reference" in md
@@ -602,3 +612,39 @@ def test_merged_reference_takes_diffuse_paths_from_one_run_and_the_rest_from_the
     power = (np.abs(m.a[0, 0, 0, 0]) ** 2)[m.valid[0, 0]]
     np.testing.assert_allclose(power.sum(), 1 + 0.25 + 0.0625 + 0.04 + 0.01, rtol=1e-6)
     assert m.vertices_m is None and m.los[0, 0].sum() == 1
+
+
+def test_equal_error_front_finds_the_fewest_one_pass_rays_at_radio_map_solvers_error():
+    """ckm_solver.equal_error_front, known answer: both solvers' maps are their reference plus a
+    fixed noise pattern of standard deviation c / sqrt(rays) (c = 1 for the one-pass, 2 for
+    RadioMapSolver), so the one-pass matches RadioMapSolver's error at 1e7 rays from 1e7 / 4 rays
+    on: 3e6 is the first count, unless it covers fewer of its reference's cells (then 5e6)."""
+    from benchmarks import ckm_solver as cs
+
+    rng = np.random.default_rng(5)
+    ref = rng.uniform(-120, -60, 2000)
+    noise = rng.standard_normal(2000)
+
+    def solver(c, s_per_ray, holes=()):
+        def run(n):
+            g = ref + c / np.sqrt(n) * 1e3 * noise
+            if n in holes:
+                g[:50] = np.nan  # 2.5 % of the cells without a value
+            return g, s_per_ray * n
+        return run
+
+    counts = [10**6, 2 * 10**6, 3 * 10**6, 5 * 10**6, 10**7]
+    for holes, rays in (((), 3 * 10**6), ((3 * 10**6,), 5 * 10**6)):
+        out = cs.equal_error_front({"one_pass": (solver(1.0, 1e-6, holes), (ref, 100.0)),
+                                    "radio_map_solver": (solver(2.0, 0.4e-6), (ref, 40.0))},
+                                   10**7, counts, 10**8)
+        assert out["one_pass_rays_at_radio_map_error"] == rays
+        assert out["one_pass_over_radio_map_time_at_equal_error"] == pytest.approx(rays * 1e-6 / 4.0, rel=1e-3)
+        rm = out["radio_map_solver"]["points"][-1]
+        assert rm["rays"] == 10**7 and rm["covered_of_reference_pct"] == 100.0
+        p50 = np.percentile(np.abs(2.0 / np.sqrt(10**7) * 1e3 * noise), 50)
+        assert rm["error_db"]["p50"] == pytest.approx(p50, abs=1e-3)
+    # no count reaches it: None, not a ratio
+    out = cs.equal_error_front({"one_pass": (solver(10.0, 1e-6), (ref, 1.0)),
+                                "radio_map_solver": (solver(1.0, 1e-6), (ref, 1.0))}, 10**7, counts, 10**8)
+    assert out["one_pass_rays_at_radio_map_error"] is None and out["one_pass_over_radio_map_time_at_equal_error"] is None
