@@ -71,6 +71,11 @@ tr38901 pattern:
   run's difference is reported beside it. RadioMapSolver with another seed at the same rays gives
   the two Monte-Carlo runs' own spread (an exact map would differ from one run by about 1/sqrt(2)
   of it).
+- at equal Monte-Carlo error (the sets of :data:`EQUAL_ERROR_SETS`, :func:`equal_error_front`):
+  each solver's map at 1e6 .. 1e7 rays against its own map at 1e8 rays (RadioMapSolver's at
+  another seed), and the time of the fewest one-pass rays that reach RadioMapSolver's p50, p95 and
+  coverage at the main ray count, over RadioMapSolver's time there; the two models like for like
+  at 1e8 rays, where the Monte-Carlo floor of the path gain comparison is sqrt(10) lower.
 
 Ray count against error (the sets of :data:`SWEEP_SETS`; above the main ray count only on the scenes
 it names): the one-pass (V, as against PathSolver) and RadioMapSolver at 1e5 .. 1e8 rays

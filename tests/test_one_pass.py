@@ -429,6 +429,27 @@ def test_one_loop_of_per_cell_sums_equals_a_bincount_per_moment():
         np.testing.assert_allclose(getattr(fused, f), getattr(ref, f), rtol=1e-12, atol=0, err_msg=f)
 
 
+def test_the_compiled_loop_still_compiles_where_no_cache_is_writable(monkeypatch):
+    """A read-only install (no writable __pycache__ or user cache): numba refuses ``cache=True`` at
+    decoration; ``_compiled`` compiles without a cache instead of failing the import."""
+    import numba
+
+    real = numba.njit
+
+    def njit(**kw):
+        if kw.get("cache"):
+            raise RuntimeError("cannot cache function 'f': no locator available for file 'f.py'")
+        return real(**kw)
+
+    monkeypatch.setattr(numba, "njit", njit)
+
+    def add_one(x):
+        return x + 1
+
+    f = op._compiled(add_one)
+    assert f(41) == 42 and isinstance(f, numba.core.registry.CPUDispatcher) and f._cache.__class__.__name__ == "NullCache"
+
+
 def test_accumulation_runs_in_order_and_its_errors_surface():
     seen = []
 

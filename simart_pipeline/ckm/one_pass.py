@@ -104,7 +104,7 @@ DEFAULT_MIN_HITS_FOR_SPREAD = 10
 DEFAULT_MIN_HITS_FOR_POWER = 5  # config.Ckm.min_hits_for_power's default; the reasoning is there
 DEFAULT_MIN_OUTDOOR_FRACTION = 0.5
 DEFAULT_MAX_FOOTPRINT_CELLS = 8.0
-BEAM_CHUNK = 4096  # directions per step of beam_factors (3x faster than all at once on 1e6)
+BEAM_CHUNK = 4096  # directions per step of beam_factors (3x faster than all at once on 2e5)
 
 
 @dataclass
@@ -260,12 +260,22 @@ class _InOrderWorker:
             fut.result()  # re-raise the first accumulation error, if any
 
 
-@numba.njit(nogil=True, cache=True)
+def _compiled(fn):
+    """``fn`` compiled without the GIL, cached on disk where numba finds a writable place (the
+    package's ``__pycache__`` or the user's cache), else compiled once per process (about 1 s)."""
+    try:
+        return numba.njit(nogil=True, cache=True)(fn)
+    except RuntimeError:  # "cannot cache function ...: no locator available": a read-only install
+        return numba.njit(nogil=True)(fn)
+
+
+@_compiled
 def _accumulate_deposits(cell, power, dist, cos0, cos1, cos2, cos3, sin0, sin1, sin2, sin3, line_of_sight,
                          tau0_s, m_power, m_power_sq, m_los_power, m_count, m_min_delay_s, m_p_excess_delay_s,
                          m_p_excess_delay2_s2, m_p_cos, m_p_sin):
-    """Every per-cell sum of one deposit set in one loop, in deposit order (the sums are those of
-    one ``np.bincount`` per moment, bitwise), without the GIL: it runs beside the tracer."""
+    """Every per-cell sum of one deposit set in one loop, in deposit order, without the GIL: it runs
+    beside the tracer. The sums of one ``np.bincount`` per moment to float64 rounding (they add
+    into the running totals directly, not a set's sum first); ``count`` and ``min_delay_s`` equal."""
     for i in range(len(cell)):
         c = cell[i]
         p = np.float64(power[i])
