@@ -857,7 +857,7 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
     X, Y = np.meshgrid(x, y)
     cells_xyz = np.stack([X.ravel(), Y.ravel(), np.full(X.size, HEIGHT_M)], -1)
     retries0 = radio.cap_retries
-    per_side = REFERENCE_POINTS_PER_SIDE[mechanisms]
+    per_side = sizes.get("points_per_side", REFERENCE_POINTS_PER_SIDE[mechanisms])
     ref_centre, ref_points, s_per_rx, paths = _pathsolver_reference(
         radio, tx, ori, cells_xyz[pick], codebook, per_side,
         non_diffuse_samples=REFERENCE_NON_DIFFUSE_SAMPLES if switches["diffuse_reflection"] else None)
@@ -965,7 +965,8 @@ def sizes_of_run(sets, quick: bool, cells: dict | None = None,
 
 def run_scene(name: str, spec: dict, num_rays: int, sets, quick: bool, seed: int, ray_counts=RAY_COUNTS,
               log=print, converged_points: int = 1, cells: dict | None = None,
-              converged_cells: int | None = None, converged_map: bool = True) -> dict:
+              converged_cells: int | None = None, converged_map: bool = True,
+              points_per_side: dict | None = None) -> dict:
     """Every mechanism set of ``sets`` on one scene; a set's sizes from :data:`COMPARE_CELLS`,
     :data:`LOOP_CELLS`, :data:`LOOP_BUDGET_S` (``quick`` picks the first of each pair), or ``cells``
     {set: compared cells} and ``converged_cells`` where given (:func:`sizes_of_run`)."""
@@ -993,7 +994,8 @@ def run_scene(name: str, spec: dict, num_rays: int, sets, quick: bool, seed: int
                      "equal_error_reference_rays": EQUAL_ERROR_REFERENCE_RAYS[q] if converged_map else 0,
                      "converged_reference_cells": n_converged,
                      "converged_reference_points": converged_points,
-                     "repeats": WARM_REPEATS if s == "los_specular" else (0 if quick else 1)}
+                     "repeats": WARM_REPEATS if s == "los_specular" else (0 if quick else 1),
+                     "points_per_side": (points_per_side or {}).get(s, REFERENCE_POINTS_PER_SIDE[s])}
             out["sets"][s] = run_set(name, s, xml, spec, num_rays, order, sizes, ray_counts, sample)
             out["sets"][s]["wall_s"] = round(time.perf_counter() - t0, 1)
             log(f"{name} {s}: {out['sets'][s]['wall_s']} s", flush=True)
@@ -1116,7 +1118,8 @@ def report(results: dict) -> str:
         + "".join(f"; {n}: " + ", ".join(f"{v:.0e} for `{k}`" for k, v in sp["reference_samples"].items())
                   for n, sp in SCENES.items() if sp.get("reference_samples"))
         + " (the per-cell loop likewise), iso V receiver (the one-pass solver projects on V likewise), "
-        + ", ".join(f"{n} x {n} points per sampled cell for `{k}`" for k, n in REFERENCE_POINTS_PER_SIDE.items())
+        + ", ".join(f"{n} x {n} points per sampled cell for `{k}`"
+                    for k, n in {**REFERENCE_POINTS_PER_SIDE, **s.get("points_per_side", {})}.items())
         + ". Mechanism sets: "
         + "; ".join(f"`{k}` {v}" for k, v in SET_LABELS.items()) + f" (S = {ALL_SCATTERING_COEFFICIENT:g} on "
         "every material, Lambertian: the scenes' own materials scatter nothing). Sampled cells lie wholly "
@@ -1487,15 +1490,20 @@ def parse_args(argv=None) -> tuple[argparse.Namespace, dict[str, int]]:
                     help="compared cells of a set instead of COMPARE_CELLS' (e.g. diffraction=100)")
     ap.add_argument("--converged-cells", type=int, default=None, metavar="N",
                     help="cells of the converged 1e8-sample reference (default 40, --quick 4; 0: none)")
+    ap.add_argument("--points-per-side", nargs="+", default=[], metavar="SET=N",
+                    help="the reference's n x n points per sampled cell of a set instead of "
+                         "REFERENCE_POINTS_PER_SIDE's (e.g. all=5, to judge near-tie beams)")
     ap.add_argument("--no-converged-map", action="store_true",
                     help="skip the one-pass map at CONVERGED_SAMPLES_FACTOR times the samples")
     args = ap.parse_args(argv)
-    cells = {}
-    for item in args.cells:
-        key, _, n = item.partition("=")
-        if key not in MECHANISM_SETS or not n.isdigit() or int(n) < 1:
-            ap.error(f"--cells {item}: expected SET=N with SET one of {', '.join(MECHANISM_SETS)} and N >= 1")
-        cells[key] = int(n)
+    cells, points = {}, {}
+    for option, items, into in (("--cells", args.cells, cells), ("--points-per-side", args.points_per_side, points)):
+        for item in items:
+            key, _, n = item.partition("=")
+            if key not in MECHANISM_SETS or not n.isdigit() or int(n) < 1:
+                ap.error(f"{option} {item}: expected SET=N with SET one of {', '.join(MECHANISM_SETS)} and N >= 1")
+            into[key] = int(n)
+    args.points_per_side = points
     return args, cells
 
 
@@ -1513,6 +1521,7 @@ def main(argv=None) -> int:
                             "per_cell_loop_cells": LOOP_CELLS[q], "per_cell_loop_budget_s": LOOP_BUDGET_S[q],
                             "variant": variant, "seed": args.seed, "ray_counts": list(ray_counts),
                             "converged_reference_points_per_cell": args.converged_points,
+                            "points_per_side": args.points_per_side,
                             "sweep_sets": {k: list(SWEEP_SETS[k]) for k in args.sets if k in SWEEP_SETS},
                             "max_point_s": MAX_POINT_S,
                             "scattering_coefficient_all": ALL_SCATTERING_COEFFICIENT,
@@ -1525,7 +1534,8 @@ def main(argv=None) -> int:
         results["scenes"][name] = run_scene(name, SCENES[name], int(args.rays), args.sets, args.quick, args.seed,
                                             ray_counts, converged_points=args.converged_points, cells=cells,
                                             converged_cells=args.converged_cells,
-                                            converged_map=not args.no_converged_map)
+                                            converged_map=not args.no_converged_map,
+                                            points_per_side=args.points_per_side)
         print(json.dumps({name: results["scenes"][name]}, indent=1), flush=True)
     results["settings"]["total_s"] = round(time.perf_counter() - t0, 1)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -515,8 +515,12 @@ def test_bench_runs_ckm_solver_with_fewer_cells_and_no_convergence_diagnostics()
     assert ckm_solver.sizes_of_run(["diffraction"], False) == (
         {"diffraction": ckm_solver.COMPARE_CELLS["diffraction"][1]}, ckm_solver.CONVERGED_REFERENCE_CELLS[1])
     for bad in ("diffraction", "diffraction=0", "mirrors=5"):
-        with pytest.raises(SystemExit):
-            ckm_solver.parse_args(["--out", "x", "--cells", bad])
+        for option in ("--cells", "--points-per-side"):
+            with pytest.raises(SystemExit):
+                ckm_solver.parse_args(["--out", "x", option, bad])
+    # the reference's points per cell of a set, for this run only
+    points, _ = ckm_solver.parse_args(["--out", "x", "--points-per-side", "all=5"])
+    assert points.points_per_side == {"all": 5} and defaults.points_per_side == {}
 
 
 def test_rerun_alternates_baseline_and_this_commit_and_the_bench_asks_for_it(tmp_path, monkeypatch):
