@@ -71,7 +71,8 @@ tr38901 pattern:
   run's difference is reported beside it. RadioMapSolver with another seed at the same rays gives
   the two Monte-Carlo runs' own spread (an exact map would differ from one run by about 1/sqrt(2)
   of it).
-- at equal Monte-Carlo error (the sets of :data:`EQUAL_ERROR_SETS`, :func:`equal_error_front`):
+- at equal Monte-Carlo error (the sets of :data:`EQUAL_ERROR_SETS`, :func:`equal_error_front`; full
+  runs without ``--no-converged-map`` only, so not in ``simart bench``: about 6 min per scene):
   each solver's map at 1e6 .. 1e7 rays against its own map at 1e8 rays (RadioMapSolver's at
   another seed), and the time of the fewest one-pass rays that reach RadioMapSolver's p50, p95 and
   coverage at the main ray count, over RadioMapSolver's time there; the two models like for like
@@ -210,10 +211,11 @@ CONVERGED_REFERENCE_SAMPLES = 10**8
 # estimator at the default samples beside it (docs/ckm-one-pass.md, "Session 12").
 CONVERGED_MAP_SETS = ("diffraction",)
 # Time at equal Monte-Carlo error against RadioMapSolver (equal_error_front): each solver's map at
-# these ray counts (and the main one) against its own at the reference's rays (quick, full)
+# these ray counts (and the main one) against its own at the reference's rays (quick, full; quick:
+# not run, its minutes would double; skipped with --no-converged-map too, as in `simart bench`)
 EQUAL_ERROR_SETS = ("all",)
 EQUAL_ERROR_COUNTS = (10**6, 2 * 10**6, 3 * 10**6, 5 * 10**6)
-EQUAL_ERROR_REFERENCE_RAYS = (3 * 10**7, 10**8)
+EQUAL_ERROR_REFERENCE_RAYS = (0, 10**8)
 CONVERGED_SAMPLES_FACTOR = (4, 16)  # (quick, full)
 # The second pass on undersampled cells (ckm.diffraction_resample_factor): its run-time/error front,
 # beside the converged map (off by default: docs/ckm-one-pass.md, "Session 15")
