@@ -724,8 +724,10 @@ def _against_radio_map(one_pass_unpolarised, radio_map, num_rays: int, n_cells: 
     (no reflection before or after the wedge), the one-pass more: ``first_order_one_pass`` is the
     one-pass restricted to RadioMapSolver's model, and its agreement is the like-for-like one
     (``path_gain_agreement_like_for_like``; without diffraction the full run's).
-    ``radio_map_other_seed()``: RadioMapSolver at ``num_rays`` with another seed, whose agreement with
-    the first is the Monte-Carlo floor of any comparison at that ray count."""
+    ``radio_map_other_seed(n)``: RadioMapSolver at ``n`` rays with another seed; at ``num_rays``
+    its agreement with the first is the Monte-Carlo floor of any comparison at that ray count.
+    ``equal_error``: {"counts", "reference_rays", "one_pass_at(n, **kw)"} for
+    :func:`equal_error_front` (RadioMapSolver's reference: ``radio_map_other_seed``)."""
     def whole_cell_db(m):
         return m.layers()["path_gain_db"][0] + 10 * np.log10(np.where(eligible, m.outdoor_fraction[0], 1))
 
@@ -756,7 +758,7 @@ def _against_radio_map(one_pass_unpolarised, radio_map, num_rays: int, n_cells: 
             "agreement_with_full_one_pass": map_agreement(whole, whole_cell_db(m1))}
         out["path_gain_agreement_like_for_like"] = agree
     if radio_map_other_seed is not None:
-        out["radio_map_solver_other_seed"] = map_agreement(radio_map(num_rays)[0], radio_map_other_seed())
+        out["radio_map_solver_other_seed"] = map_agreement(radio_map(num_rays)[0], radio_map_other_seed(num_rays))
     if equal_error is not None:
         one_pass_at = equal_error["one_pass_at"]
 
@@ -772,14 +774,17 @@ def _against_radio_map(one_pass_unpolarised, radio_map, num_rays: int, n_cells: 
         reference_rays = equal_error["reference_rays"]
         # RadioMapSolver's reference at another seed: with the same seed a ray's random numbers
         # depend on its index alone, and the first rays of the reference would be the count's own
-        rm_reference = _timed(lambda: equal_error["radio_map_other_seed"](reference_rays))
+        rm_reference = _timed(lambda: radio_map_other_seed(reference_rays))
+        op_reference = one_pass_db(reference_rays)
         out["equal_error"] = equal_error_front(
-            {"one_pass": (one_pass_db, one_pass_db(reference_rays)),
+            {"one_pass": (one_pass_db, op_reference),
              "radio_map_solver": (lambda n: (radio_map(n)[0], radio_map(n)[2]), rm_reference)},
             num_rays, equal_error["counts"], reference_rays)
-        if first_order_one_pass is not None:  # the models' own difference, at the reference's rays
-            lfl = whole_cell_db(one_pass_at(reference_rays, diffraction_with_reflections=False)())
-            out["equal_error"]["like_for_like_at_reference_rays"] = map_agreement(lfl, rm_reference[0])
+        # the models' own difference at the reference's rays: with diffraction the one-pass in
+        # RadioMapSolver's first-order model, as at num_rays; without, its reference itself
+        lfl = (whole_cell_db(one_pass_at(reference_rays, diffraction_with_reflections=False)())
+               if first_order_one_pass is not None else op_reference[0])
+        out["equal_error"]["like_for_like_at_reference_rays"] = map_agreement(lfl, rm_reference[0])
     return out
 
 
@@ -934,11 +939,10 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
         "radio_map_solver": _against_radio_map(
             one_pass(num_rays, None), radio_map, num_rays, n_cells, eligible, fast_s, repeats,
             one_pass(num_rays, None, diffraction_with_reflections=False) if switches["diffraction"] else None,
-            lambda: radio_map_path_gain_db(radio, other_seed, HEIGHT_M, num_rays)[0],
+            lambda n: radio_map_path_gain_db(radio, other_seed, HEIGHT_M, n)[0],
             {"counts": sorted({c for c in EQUAL_ERROR_COUNTS if c < num_rays} | {num_rays}),
              "reference_rays": sizes["equal_error_reference_rays"],
-             "one_pass_at": lambda n, **kw: one_pass(n, None, **kw),
-             "radio_map_other_seed": lambda n: radio_map_path_gain_db(radio, other_seed, HEIGHT_M, n)[0]}
+             "one_pass_at": lambda n, **kw: one_pass(n, None, **kw)}
             if mechanisms in EQUAL_ERROR_SETS and sizes.get("equal_error_reference_rays", 0) > num_rays else None),
     }
     if mechanisms in CONVERGED_MAP_SETS and sizes["converged_factor"] > 0:

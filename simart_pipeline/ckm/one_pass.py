@@ -168,7 +168,8 @@ class _Accumulator:
                              m.los_power, m.count, m.min_delay_s, m.p_excess_delay_s, m.p_excess_delay2_s2,
                              m.p_cos, m.p_sin)
         if self.codebook is not None and not line_of_sight:  # line of sight: in moments()
-            self._beams(cell, p, dep["dkey"].astype(np.int64))
+            # float64 weights: the large-grid grouping sums with np.add.reduceat, in their type
+            self._beams(cell, p.astype(np.float64), dep["dkey"].astype(np.int64))
 
     def _beams(self, cell, p, dkey):
         # Deposits of a cell that share a departure direction (one path: the same direction up to
