@@ -733,6 +733,33 @@ def test_edges_between_coplanar_faces_do_not_diffract(tmp_path, monkeypatch):
     assert len(mid) >= 8 and (on_planes >= 2).all(), (len(mid), int((on_planes < 2).sum()))
 
 
+def test_wedge_order_follows_the_scene_not_mitsubas_shape_ids(monkeypatch):
+    """The diffraction sampler's (source, wedge) pairs are ordered by each shape's place in the
+    scene (``mi_scene.shapes()``), then by the edge: Mitsuba numbers shapes as its loading threads
+    finish, so their ids differ between processes, and an order by id gave each wedge other sample
+    keys there, hence other diffuse draws (street canyon, diffraction and diffuse reflection,
+    1e6 rays: 6 different totals of ray hits in 8 processes)."""
+    import sionna.rt as rt
+
+    from simart_pipeline.ckm import diffraction as dif
+
+    radio = RadioScene.from_config(rt.scene.simple_street_canyon, _cfg())
+    seen = {}
+    trace = dif.DiffractionSampler.trace
+    monkeypatch.setattr(dif.DiffractionSampler, "trace", lambda self, *a, **k: (seen.setdefault("s", self), trace(self, *a, **k))[1])
+    x, y = _axes(-60.0, 30, -30.0, 15, 4.0)
+    op.one_pass_moments(radio, np.array([-30.0, 5.0, 20.0]), np.zeros(3), x, y, [1.5], 100_000, 3,
+                        diffraction=True, diffuse_reflection=True, rx_polarization=None)
+    sampler = seen["s"]
+    faces, w = sampler.tracer.faces, sampler._wedge_np
+    rank = {int(i): r for r, i in enumerate(faces.shape_ids)}
+    ranks = np.array([rank[int(i)] for i in w["shape"]])
+    assert len(faces.shape_ids) >= 3 and len(np.unique(ranks)) >= 3, ranks
+    for order in (0, 1):  # direct pairs first, then those lit through a reflection: each by rank
+        r = ranks[w["order"] == order]
+        assert (np.diff(r) >= 0).all(), (order, r)
+
+
 def test_diffracted_bundle_area_equals_sionnas_change_of_variables():
     """The closed form s (s + s') sin^2(beta) / s' against Sionna's own integration weight
     (forward-mode AD through the ray's intersection with a plane normal to it), for random

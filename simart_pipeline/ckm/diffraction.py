@@ -211,7 +211,13 @@ class DiffractionSampler:
         e_np = o_np + out["e_hat"] * out["length"][:, None].astype(np.float64)
         first_o = _lex_less(o_np, e_np)[:, None]  # the key does not depend on the edge's direction
         lo, hi = np.where(first_o, o_np, e_np), np.where(first_o, e_np, o_np)
-        key = np.column_stack([out["shape"].astype(np.int64), np.round(np.column_stack([lo, hi]) / WEDGE_KEY_M),
+        # the shape's place in the scene (mi_scene.shapes() order), not its Mitsuba id: Mitsuba
+        # loads shapes on several threads and numbers them as they finish, so ids differ from one
+        # process to the next (and with them the sample keys, so the diffuse draws, of each wedge)
+        faces = self.tracer.faces
+        rank = np.zeros(int(faces.shape_ids.max(initial=0)) + 1, np.int64)
+        rank[faces.shape_ids] = np.arange(len(faces.shape_ids))
+        key = np.column_stack([rank[out["shape"].astype(np.int64)], np.round(np.column_stack([lo, hi]) / WEDGE_KEY_M),
                                np.round(out["src"] / WEDGE_KEY_M)]).astype(np.int64)
         _, first = np.unique(key, axis=0, return_index=True)  # sorted keys: a fixed order
         return {k: v[first] for k, v in out.items()}
@@ -526,7 +532,7 @@ class DiffractionSampler:
         qq, kki, kko, sp, sr, o, dd = take(q), take(ki), take(ko), take(s_prime), take(s_ref), take(ray.o), take(dep)
         # departure directions on a 2**-7 grid of direction cosines (< 0.45 deg): the deposits of
         # neighbouring samples then share their beam factors (one evaluation per cell and direction,
-        # one-pass _Accumulator._beams), which otherwise cost 25x the tracing with 64 beams
+        # one-pass _Accumulator._add_beams), which otherwise cost 25x the tracing with 64 beams
         dd = dr.normalize(dr.round(dd * (1.0 / DEPARTURE_QUANTUM)) * DEPARTURE_QUANTUM)
         n = dr.width(idx)
         e_out = RadioMapSolver._evaluate_radio_material_diffraction(
