@@ -105,6 +105,7 @@ DEFAULT_MIN_HITS_FOR_POWER = 5  # config.Ckm.min_hits_for_power's default; the r
 DEFAULT_MIN_OUTDOOR_FRACTION = 0.5
 DEFAULT_MAX_FOOTPRINT_CELLS = 8.0
 BEAM_CHUNK = 4096  # directions per step of beam_factors (3x faster than all at once on 2e5)
+MAX_PENDING_GROUPS = 1 << 22  # (cell, direction) groups whose beams wait for one evaluation: 96 MB
 
 
 @dataclass
@@ -155,6 +156,9 @@ class _Accumulator:
         self.rot = tx_rotation
         self.k = 2 * np.pi / wavelength_m
         self.stretch_keys: list[np.ndarray] = []  # distinct (cell << 32 | stretch) of tagged deposits
+        # (cells, direction keys, power sums) of the deposit sets whose beams are still to add
+        self.beam_groups: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self.pending_groups = 0
 
     def __call__(self, dep: dict[str, np.ndarray], line_of_sight: bool) -> None:
         m = self.m
@@ -168,15 +172,33 @@ class _Accumulator:
                              m.los_power, m.count, m.min_delay_s, m.p_excess_delay_s, m.p_excess_delay2_s2,
                              m.p_cos, m.p_sin)
         if self.codebook is not None and not line_of_sight:  # line of sight: in moments()
+            # Deposits of a cell that share a departure direction (one path: the same direction up
+            # to float32 noise after the image-source correction) share a beam factor: summed per
+            # group here, the factors evaluated once per direction for many sets in _add_beams
+            # (a path's direction recurs in every batch: per set, a quarter of a GPU run's time).
             # float64 weights: the large-grid grouping sums with np.add.reduceat, in their type
-            self._beams(cell, p.astype(np.float64), dep["dkey"].astype(np.int64))
+            groups = _group_sums(cell, dep["dkey"].view(np.int64), p.astype(np.float64), len(self.m.power))
+            self.beam_groups.append(groups)
+            self.pending_groups += len(groups[0])
+            if self.pending_groups > MAX_PENDING_GROUPS:
+                self._add_beams()
 
-    def _beams(self, cell, p, dkey):
-        # Deposits of a cell that share a departure direction (one path: the same direction up to
-        # float32 noise after the image-source correction) share a beam factor: evaluate it once
-        # per group, at the direction quantised to DIRECTION_QUANTUM in the device frame (the
-        # key, made on the Dr.Jit side: the same for a ray whatever its batch).
-        g_cell, g_dkey, pg = _group_sums(cell, dkey, p, len(self.m.power))
+    def summed(self) -> CellMoments:
+        """The running sums, every deposit's beams included (line of sight's come in moments())."""
+        self._add_beams()
+        return self.m
+
+    def _add_beams(self) -> None:
+        """Adds the pending groups' beam powers: the factor of each group's direction, quantised
+        to DIRECTION_QUANTUM in the device frame (the key, made on the Dr.Jit side: the same for a
+        ray whatever its batch), times the group's power."""
+        if not self.beam_groups:
+            return
+        if len(self.beam_groups) == 1:
+            g_cell, g_dkey, pg = self.beam_groups[0]
+        else:  # a (cell, direction) group may recur in several sets: one group again
+            g_cell, g_dkey, pg = _group_sums(*(np.concatenate(a) for a in zip(*self.beam_groups)), len(self.m.power))
+        self.beam_groups, self.pending_groups = [], 0
         # many cells share a direction (diffracted paths: on DEPARTURE_QUANTUM's grid): evaluate
         # each distinct direction once
         inverse, keys = pd.factorize(g_dkey, sort=False)
@@ -206,7 +228,7 @@ class _Accumulator:
         """In the flat ``cells``: take out what ``old`` added (the same deposits again) and add
         ``new`` instead (sums; float64 leaves about 1e-16 of the old part, clipped at zero). The
         earliest delay is the smaller of this and ``new``'s (both sample the same paths)."""
-        m = self.m
+        m = self.summed()
         beams = ("beam_power",) if m.beam_power is not None else ()
         for f in ("power", "power_sq", "los_power", "p_excess_delay_s", "p_excess_delay2_s2", "p_cos", "p_sin",
                   "count") + beams:
@@ -217,7 +239,7 @@ class _Accumulator:
 
     def moments(self) -> CellMoments:
         s = self.shape
-        m = self.m
+        m = self.summed()
         if self.codebook is not None:
             # every line-of-sight deposit of a cell leaves towards the cell centre exactly (its image
             # source is the transmitter): one beam factor per cell, at the unquantised direction
@@ -521,7 +543,7 @@ def _resample_undersampled(acc: _Accumulator, wedges, factor: int, masked, frac,
     replay, finer = new_accumulator(), new_accumulator()
     with _InOrderWorker(replay) as replay_sink, _InOrderWorker(finer) as finer_sink:
         out["new_samples"] = wedges.resample(stretches, factor, batch, replay_sink, finer_sink)
-    acc.replace(cells, replay.m, finer.m)
+    acc.replace(cells, replay.summed(), finer.summed())
     out["still_undersampled"] = int(len(_undersampled_cells(acc, masked, frac, min_hits, min_effective)))
     return out
 

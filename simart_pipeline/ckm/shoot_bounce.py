@@ -160,7 +160,7 @@ def direction_terms(d_c, d_dep, rotation, with_beams: bool) -> dict:
     """The direction part of a deposit: cos and sin of azimuth and zenith, arrival then departure
     (ANGLES order; arrival angles are those of ``-d_c``, towards where the wave comes from, as
     PathSolver's), and with ``with_beams`` the departure direction in the device frame quantised
-    to :data:`DIRECTION_QUANTUM` (the key of ``one_pass._Accumulator._beams``). ``d_c``: unit
+    to :data:`DIRECTION_QUANTUM` (the key of ``one_pass._Accumulator._add_beams``). ``d_c``: unit
     propagation direction into the cell centre; ``d_dep``: unit departure direction (world);
     ``rotation``: device-to-world rotation (rows indexable, numbers or opaque floats)."""
     import drjit as dr
