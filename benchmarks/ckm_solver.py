@@ -969,6 +969,14 @@ def sizes_of_run(sets, quick: bool, cells: dict | None = None,
             CONVERGED_REFERENCE_CELLS[q] if converged_cells is None else converged_cells)
 
 
+def grid_axes(spec: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Cell-centre x and y (m) of a scene's grid: ``spec``'s centre and size in CELL_M cells."""
+    nx, ny = (int(round(s / CELL_M)) for s in spec["size"])
+    x = spec["centre"][0] - spec["size"][0] / 2 + (np.arange(nx) + 0.5) * CELL_M
+    y = spec["centre"][1] - spec["size"][1] / 2 + (np.arange(ny) + 0.5) * CELL_M
+    return x, y
+
+
 def run_scene(name: str, spec: dict, num_rays: int, sets, quick: bool, seed: int, ray_counts=RAY_COUNTS,
               log=print, converged_points: int = 1, cells: dict | None = None,
               converged_cells: int | None = None, converged_map: bool = True,
@@ -976,9 +984,8 @@ def run_scene(name: str, spec: dict, num_rays: int, sets, quick: bool, seed: int
     """Every mechanism set of ``sets`` on one scene; a set's sizes from :data:`COMPARE_CELLS`,
     :data:`LOOP_CELLS`, :data:`LOOP_BUDGET_S` (``quick`` picks the first of each pair), or ``cells``
     {set: compared cells} and ``converged_cells`` where given (:func:`sizes_of_run`)."""
-    nx, ny = (int(round(s / CELL_M)) for s in spec["size"])
-    x = spec["centre"][0] - spec["size"][0] / 2 + (np.arange(nx) + 0.5) * CELL_M
-    y = spec["centre"][1] - spec["size"][1] / 2 + (np.arange(ny) + 0.5) * CELL_M
+    x, y = grid_axes(spec)
+    nx, ny = x.size, y.size
     q = 0 if quick else 1
     out = {"scene": spec.get("attr") or f"scenes/{spec['project']} (OSM, the project's radio mesh)",
            "tx_position_m": list(spec["tx"]),

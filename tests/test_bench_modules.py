@@ -652,3 +652,35 @@ def test_equal_error_front_finds_the_fewest_one_pass_rays_at_radio_map_solvers_e
     out = cs.equal_error_front({"one_pass": (solver(10.0, 1e-6), (ref, 1.0)),
                                 "radio_map_solver": (solver(1.0, 1e-6), (ref, 1.0))}, 10**7, counts, 10**8)
     assert out["one_pass_rays_at_radio_map_error"] is None and out["one_pass_over_radio_map_time_at_equal_error"] is None
+
+
+def test_ckm_variants_two_runs_agree_to_the_bit(tmp_path, monkeypatch):
+    """benchmarks/ckm_variants: two runs of the same calls (what a GPU and a CPU run are compared
+    as, with ``--compare A B``) give maps that agree exactly: the one-pass traces the same lattice
+    with the same keys, RadioMapSolver the same seed. Warm times and the per-cell loop come out
+    positive for every count, and runs of other ray counts are refused."""
+    from benchmarks import ckm_variants as cv
+
+    monkeypatch.setattr(cv, "LOOP_CELLS", 2)
+    monkeypatch.setattr(cv, "LOOP_BUDGET_S", 0.0)
+    args = ["--scenes", "street_canyon", "--ray-counts", "2e4", "3e4", "--batch-rays", "16384", "32768"]
+    for run in ("a", "b"):
+        assert cv.main(["--out", str(tmp_path / run)] + args) == 0
+    r = json.loads((tmp_path / "a" / "results.json").read_text())
+    canyon = r["scenes"]["street_canyon"]
+    assert set(canyon["one_pass"]) == set(canyon["radio_map_solver"]) == {"20000", "30000"}
+    assert all(v["warm_s"] > 0 for v in list(canyon["one_pass"].values()) + list(canyon["radio_map_solver"].values()))
+    assert set(canyon["batch_rays"]) == {"16384", "32768"} and canyon["pathsolver_per_cell"]["per_call_s"] > 0
+    assert r["machine"] and r["variant"].endswith("_ad_mono_polarized")
+
+    assert cv.main(["--out", str(tmp_path / "c"), "--compare", str(tmp_path / "a"), str(tmp_path / "b")]) == 0
+    c = json.loads((tmp_path / "c" / "compare.json").read_text())["scenes"]["street_canyon"]
+    for key in ("one_pass_path_gain", "radio_map_solver_path_gain"):
+        a = c[key]
+        assert a["cells_a"] == a["cells_b"] == a["cells_both"] > 100 and a["abs_diff_db"]["p95"] == 0.0, (key, a)
+    assert c["one_pass_best_beam_same_pct"] == 100.0 and c["one_pass_rms_delay_spread_abs_diff_ns"]["p95"] == 0.0
+    other = json.loads((tmp_path / "b" / "results.json").read_text())
+    other["ray_counts"][0] = 10**5
+    (tmp_path / "b" / "results.json").write_text(json.dumps(other))
+    with pytest.raises(ValueError, match="main ray counts differ"):
+        cv.compare(tmp_path / "a", tmp_path / "b")

@@ -1,0 +1,228 @@
+"""The one-pass CKM and Sionna's RadioMapSolver on the Mitsuba variant this machine gets
+(:func:`simart_pipeline.engine.init`: ``cuda`` where a GPU is present, LLVM otherwise).
+
+Per scene (every mechanism, the ``all`` set of :mod:`benchmarks.ckm_solver`, its grid, station
+and cells): warm times of the one-pass (V receiver, every layer) and of RadioMapSolver at each ray
+count, the one-pass at several ray batch sizes, the one-pass like for like with RadioMapSolver
+(``|E|^2``), the per-cell PathSolver loop, and the maps themselves (``maps_<scene>.npz``).
+
+``--compare A B``: two finished runs (say a GPU's and a CPU's, same seed and main ray count),
+map by map and cell by cell, with both machines' times side by side. The one-pass traces the same
+Fibonacci lattice with the same random keys on either variant, so its maps agree to float32
+rounding wherever the two ray casters (Embree on the CPU, OptiX on the GPU) agree on a hit;
+RadioMapSolver's random numbers come from its seed alone, so its maps agree likewise.
+
+    python -m benchmarks.ckm_variants --out DIR [--scenes ...] [--ray-counts 1e7 1e8]
+    python -m benchmarks.ckm_variants --compare A B --out DIR
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import platform
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks import ckm_solver as cs
+from simart_pipeline import engine
+from simart_pipeline.ckm import one_pass as op
+from simart_pipeline.link.beams import dft_codebook
+
+MECHANISMS = "all"
+BATCH_RAYS = (op.DEFAULT_BATCH_RAYS, 4 * op.DEFAULT_BATCH_RAYS, 8 * op.DEFAULT_BATCH_RAYS)
+LOOP_CELLS, LOOP_BUDGET_S = 8, 8.0
+SAVED_LAYERS = ("path_gain_db", "toa_s", "rms_delay_spread_s", "best_beam")
+
+
+class SceneRuns:
+    """The one-pass and RadioMapSolver calls of one scene, as :func:`benchmarks.ckm_solver.run_set`
+    makes them for the ``all`` set."""
+
+    def __init__(self, name: str, folder: Path):
+        from simart_pipeline.ckm.outdoor import radio_solids
+
+        self.spec = spec = cs.SCENES[name]
+        self.cfg = cfg = cs._config(spec, MECHANISMS)
+        t0 = time.perf_counter()
+        self.radio = cs._radio_scene(cs._radio_xml(spec, folder), cfg, MECHANISMS)
+        self.build_s = time.perf_counter() - t0
+        self.tx = np.array(spec["tx"])
+        self.ori = np.radians([spec["yaw_pitch_deg"][0], spec["yaw_pitch_deg"][1], 0.0])
+        self.x, self.y = cs.grid_axes(spec)
+        self.codebook = dft_codebook(self.radio.array_positions_m("tx"), self.radio.wavelength_m, 8, 8).weights
+        self.switches = {k: bool(getattr(cfg.ray_tracing, k)) for k in cs.SWITCHES}
+        self.solids = radio_solids(self.radio)
+
+    def one_pass(self, n: int, rx_polarization="V", batch_rays: int = op.DEFAULT_BATCH_RAYS):
+        return lambda: op.one_pass_moments(
+            self.radio, self.tx, self.ori, self.x, self.y, [cs.HEIGHT_M], n, cs.MAX_DEPTH, codebook=self.codebook,
+            rx_polarization=rx_polarization, solids=self.solids, batch_rays=batch_rays,
+            diffraction_resample_factor=self.cfg.ckm.diffraction_resample_factor, **self.switches)
+
+    def radio_map(self, n: int):
+        from simart_pipeline.ckm.radiomap import radio_map_path_gain_db
+
+        return lambda: radio_map_path_gain_db(self.radio, self.cfg, cs.HEIGHT_M, n)[0]
+
+
+def whole_cell_db(m: op.OnePassMoments) -> np.ndarray:
+    """The one-pass's unpolarised path gain over the whole cell area (RadioMapSolver's)."""
+    eligible = ~m.masked[0]
+    return m.layers()["path_gain_db"][0] + 10 * np.log10(np.where(eligible, m.outdoor_fraction[0], 1))
+
+
+def _layers(m: op.OnePassMoments) -> dict[str, np.ndarray]:
+    layers = m.layers()
+    return {k: np.asarray(layers[k][0]) for k in SAVED_LAYERS if k in layers}
+
+
+def run_scene(name: str, ray_counts, batch_rays, out: Path, log=print) -> dict:
+    with tempfile.TemporaryDirectory(prefix="ckm-variants-") as tmp:
+        s = SceneRuns(name, Path(tmp))
+        main = ray_counts[0]
+        res = {"scene_build_s": round(s.build_s, 3), "grid_cells": int(s.x.size * s.y.size),
+               "seed": int(s.cfg.ray_tracing.seed), "one_pass": {}, "radio_map_solver": {}, "batch_rays": {}}
+        maps: dict[str, np.ndarray] = {}
+        for n in ray_counts:
+            m, first, warm = cs._warm(s.one_pass(n), 1 if n == main else 0)
+            res["one_pass"][str(n)] = {"first_call_s": cs._r3(first), "warm_s": round(warm, 3),
+                                       "ray_hits": int(m.count.sum())}
+            if n == main:
+                n_outdoor = int((m.outdoor_fraction[0] > 0).sum())
+                maps.update({f"one_pass_v_{k}": v for k, v in _layers(m).items()})
+            log(f"{name} one-pass {n:.0e}: {res['one_pass'][str(n)]}", flush=True)
+        for b in batch_rays:
+            if b == op.DEFAULT_BATCH_RAYS:
+                continue
+            _, first, warm = cs._warm(s.one_pass(main, batch_rays=b), 1)
+            res["batch_rays"][str(b)] = {"first_call_s": cs._r3(first), "warm_s": round(warm, 3)}
+            log(f"{name} one-pass {main:.0e} batch {b}: {res['batch_rays'][str(b)]}", flush=True)
+        m, first, warm = cs._warm(s.one_pass(main, None), 1)
+        maps["one_pass_unpolarised_whole_cell_db"] = whole_cell_db(m)
+        res["one_pass_unpolarised"] = {"rays": main, "first_call_s": cs._r3(first), "warm_s": round(warm, 3)}
+        for n in ray_counts:
+            g, first, warm = cs._warm(s.radio_map(n), 1 if n == main else 0)
+            res["radio_map_solver"][str(n)] = {"first_call_s": cs._r3(first), "warm_s": round(warm, 3),
+                                               "cells_covered": int(np.isfinite(g).sum())}
+            if n == main:
+                maps["radio_map_path_gain_db"] = g
+            log(f"{name} RadioMapSolver {n:.0e}: {res['radio_map_solver'][str(n)]}", flush=True)
+        res["like_for_like_agreement"] = cs.map_agreement(maps["one_pass_unpolarised_whole_cell_db"],
+                                                          maps["radio_map_path_gain_db"])
+        X, Y = np.meshgrid(s.x, s.y)
+        outdoor = np.flatnonzero((m.outdoor_fraction[0] == 1.0).ravel())
+        cells = np.stack([X.ravel(), Y.ravel(), np.full(X.size, cs.HEIGHT_M)], -1)
+        cells = cells[np.random.default_rng(0).permutation(outdoor)[:LOOP_CELLS]]
+        per_call_s, calls = cs._per_cell_loop_s(s.radio, s.tx, s.ori, cells, LOOP_BUDGET_S)
+        op_s = res["one_pass"][str(main)]["warm_s"]
+        res["pathsolver_per_cell"] = {"samples_per_src": cs.reference_samples(s.spec, MECHANISMS),
+                                      "per_call_s": round(per_call_s, 4), "calls": calls,
+                                      "speedup_of_one_pass": round(per_call_s * n_outdoor / op_s, 1)}
+        res["one_pass_over_radio_map_time"] = round(
+            res["one_pass_unpolarised"]["warm_s"] / res["radio_map_solver"][str(main)]["warm_s"], 3)
+        np.savez_compressed(out / f"maps_{name}.npz", **maps)
+    return res
+
+
+def _machine() -> str:
+    """CPU model and cores, and the GPU where nvidia-smi names one."""
+    import os
+    import shutil
+    import subprocess
+
+    cpu = platform.machine()
+    with contextlib.suppress(OSError):
+        cpu = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
+                    if ln.startswith("model name")), cpu)
+    out = f"{cpu}, {os.cpu_count()} cores"
+    if shutil.which("nvidia-smi"):
+        with contextlib.suppress(OSError, subprocess.SubprocessError):
+            gpu = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
+                                 text=True, timeout=30).stdout.strip()
+            out += f"; {gpu}" if gpu else ""
+    return out
+
+
+def _table(results: dict) -> list[str]:
+    rows = ["| scene | rays | one-pass V s | one-pass |E|^2 s | RadioMapSolver s | ratio | per-cell loop s/call | speed-up |",
+            "|---|---|---|---|---|---|---|---|"]
+    for name, r in results["scenes"].items():
+        main = str(results["ray_counts"][0])
+        for n in results["ray_counts"]:
+            k = str(n)
+            unpol = r["one_pass_unpolarised"]["warm_s"] if k == main else None
+            rm = r["radio_map_solver"].get(k, {}).get("warm_s")
+            rows.append(f"| {name} | {n:.0e} | {r['one_pass'].get(k, {}).get('warm_s')} | {unpol} | {rm} | "
+                        f"{r['one_pass_over_radio_map_time'] if k == main else ''} | "
+                        f"{r['pathsolver_per_cell']['per_call_s'] if k == main else ''} | "
+                        f"{r['pathsolver_per_cell']['speedup_of_one_pass'] if k == main else ''} |")
+    return rows
+
+
+def compare(a_dir: Path, b_dir: Path) -> dict:
+    """Two runs of this benchmark (e.g. a GPU's and a CPU's, same seed and main ray count), map
+    by map and cell by cell, with both machines' warm times side by side."""
+    a, b = (json.loads((d / "results.json").read_text()) for d in (a_dir, b_dir))
+    if a["ray_counts"][0] != b["ray_counts"][0]:
+        raise ValueError(f"{a_dir} and {b_dir}: main ray counts differ ({a['ray_counts'][0]} and {b['ray_counts'][0]})")
+    main = str(a["ray_counts"][0])
+    out = {"a": {k: a[k] for k in ("variant", "machine")}, "b": {k: b[k] for k in ("variant", "machine")},
+           "rays": int(main), "scenes": {}}
+    gain = "one_pass_v_path_gain_db"
+    for name in sorted(set(a["scenes"]) & set(b["scenes"])):
+        ra, rb = a["scenes"][name], b["scenes"][name]
+        if ra["seed"] != rb["seed"]:
+            raise ValueError(f"{name}: seeds differ ({ra['seed']} and {rb['seed']})")
+        ma, mb = np.load(a_dir / f"maps_{name}.npz"), np.load(b_dir / f"maps_{name}.npz")
+        both = np.isfinite(ma[gain]) & np.isfinite(mb[gain])
+        ds_ns = np.abs(ma["one_pass_v_rms_delay_spread_s"] - mb["one_pass_v_rms_delay_spread_s"]) * 1e9
+        out["scenes"][name] = {
+            "one_pass_path_gain": cs.map_agreement(ma[gain], mb[gain]),
+            "one_pass_rms_delay_spread_abs_diff_ns": cs._percentiles(ds_ns),
+            "one_pass_best_beam_same_pct": round(100 * float(np.mean(
+                ma["one_pass_v_best_beam"][both] == mb["one_pass_v_best_beam"][both])), 2),
+            "radio_map_solver_path_gain": cs.map_agreement(ma["radio_map_path_gain_db"], mb["radio_map_path_gain_db"]),
+            "warm_s": {k: {"one_pass_v": r["one_pass"][main]["warm_s"],
+                           "one_pass_unpolarised": r["one_pass_unpolarised"]["warm_s"],
+                           "radio_map_solver": r["radio_map_solver"][main]["warm_s"]}
+                       for k, r in (("a", ra), ("b", rb))}}
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--scenes", nargs="+", default=list(cs.SCENES), choices=list(cs.SCENES))
+    p.add_argument("--ray-counts", nargs="+", type=float, default=[1e7, 1e8],
+                   help="the first is the main count (maps, batch sizes, like for like)")
+    p.add_argument("--batch-rays", nargs="+", type=float, default=list(BATCH_RAYS))
+    p.add_argument("--compare", type=Path, nargs=2, metavar=("A", "B"),
+                   help="compare two finished runs (folders of results.json and maps); no tracing")
+    a = p.parse_args(argv)
+    a.out.mkdir(parents=True, exist_ok=True)
+    if a.compare:
+        res = compare(*a.compare)
+        (a.out / "compare.json").write_text(json.dumps(res, indent=1))
+        print(json.dumps(res["scenes"], indent=1))
+        return 0
+    variant = engine.init()
+    print(f"variant: {variant}", flush=True)
+    counts = [int(n) for n in a.ray_counts]
+    results = {"variant": variant, "machine": _machine(),
+               "versions": engine.versions(), "ray_counts": counts, "scenes": {}}
+    for name in a.scenes:
+        t0 = time.perf_counter()
+        results["scenes"][name] = run_scene(name, counts, [int(b) for b in a.batch_rays], a.out)
+        results["scenes"][name]["wall_s"] = round(time.perf_counter() - t0, 1)
+        (a.out / "results.json").write_text(json.dumps(results, indent=1))  # each scene as it lands
+    print("\n".join(_table(results)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
