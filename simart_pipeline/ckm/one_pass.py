@@ -177,7 +177,9 @@ class _Accumulator:
             # group here, the factors evaluated once per direction for many sets in _add_beams
             # (a path's direction recurs in every batch: per set, a quarter of a GPU run's time).
             # float64 weights: the large-grid grouping sums with np.add.reduceat, in their type
-            groups = _group_sums(cell, dep["dkey"].view(np.int64), p.astype(np.float64), len(self.m.power))
+            dkey = dep["dkey"]  # Dr.Jit's UInt64: the same bits as int64 (keys use 3 Q_BITS < 63 bits)
+            dkey = dkey.view(np.int64) if dkey.dtype == np.uint64 else dkey.astype(np.int64)
+            groups = _group_sums(cell, dkey, p.astype(np.float64), len(self.m.power))
             self.beam_groups.append(groups)
             self.pending_groups += len(groups[0])
             if self.pending_groups > MAX_PENDING_GROUPS:
