@@ -320,9 +320,16 @@ def machine() -> dict:
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     from simart_pipeline.engine import cuda_available
 
+    gpu = None
+    if shutil.which("nvidia-smi"):
+        try:
+            gpu = subprocess.run(["nvidia-smi", "--query-gpu=name,memory.total,driver_version", "--format=csv,noheader"],
+                                 capture_output=True, text=True, timeout=30).stdout.strip() or None
+        except (OSError, subprocess.SubprocessError):
+            pass
     return {"cpu": cpu, "cores": cores, "memory_gib": mem, "os": platform.platform(),
             "python": platform.python_version(), "packages": versions, "git_commit": commit,
-            "git_dirty": dirty, "cuda_gpu": cuda_available()}
+            "git_dirty": dirty, "cuda_gpu": cuda_available(), "gpu": gpu}
 
 
 # --- running -------------------------------------------------------------------------------------
@@ -471,7 +478,7 @@ def report_md(results: dict, benchmarks: list[Bench] | None = None) -> str:
              f"`{results['command']}`, started {results['started_utc']}, {results['total_wall_s']} s in all.", "",
              f"Machine: {m['cpu']}, {m['cores']} cores, {m['memory_gib']} GiB, {m['os']}; Python {m['python']}; "
              f"{pk}; commit {m['git_commit'] or 'unknown'}{' (with uncommitted changes)' if m['git_dirty'] else ''}.",
-             "", "GPU: " + ("a CUDA device is present; Mitsuba's `cuda` variant ran where a benchmark uses it."
+             "", "GPU: " + (f"{m.get('gpu') or 'a CUDA device'}; Mitsuba's `cuda` variant ran where a benchmark uses it."
                            if m.get("cuda_gpu") else "none on this machine, so the CUDA variant was not measured "
                            "(no CPU/GPU ratio)."),
              "", f"**{count['ok']} ran, {count['failed']} failed, {count['skipped']} skipped.**", "",

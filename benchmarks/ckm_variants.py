@@ -19,9 +19,7 @@ RadioMapSolver's random numbers come from its seed alone, so its maps agree like
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
-import platform
 import tempfile
 import time
 from pathlib import Path
@@ -29,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks import ckm_solver as cs
+from benchmarks.bench import machine
 from simart_pipeline import engine
 from simart_pipeline.ckm import one_pass as op
 from simart_pipeline.link.beams import dft_codebook
@@ -129,25 +128,6 @@ def run_scene(name: str, ray_counts, batch_rays, out: Path, log=print) -> dict:
     return res
 
 
-def _machine() -> str:
-    """CPU model and cores, and the GPU where nvidia-smi names one."""
-    import os
-    import shutil
-    import subprocess
-
-    cpu = platform.machine()
-    with contextlib.suppress(OSError):
-        cpu = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
-                    if ln.startswith("model name")), cpu)
-    out = f"{cpu}, {os.cpu_count()} cores"
-    if shutil.which("nvidia-smi"):
-        with contextlib.suppress(OSError, subprocess.SubprocessError):
-            gpu = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
-                                 text=True, timeout=30).stdout.strip()
-            out += f"; {gpu}" if gpu else ""
-    return out
-
-
 def _table(results: dict) -> list[str]:
     rows = ["| scene | rays | one-pass V s | one-pass |E|^2 s | RadioMapSolver s | ratio | per-cell loop s/call | speed-up |",
             "|---|---|---|---|---|---|---|---|"]
@@ -213,8 +193,8 @@ def main(argv=None) -> int:
     variant = engine.init()
     print(f"variant: {variant}", flush=True)
     counts = [int(n) for n in a.ray_counts]
-    results = {"variant": variant, "machine": _machine(),
-               "versions": engine.versions(), "ray_counts": counts, "scenes": {}}
+    results = {"variant": variant, "machine": machine(),
+               "ray_counts": counts, "scenes": {}}
     for name in a.scenes:
         t0 = time.perf_counter()
         results["scenes"][name] = run_scene(name, counts, [int(b) for b in a.batch_rays], a.out)
