@@ -13,6 +13,7 @@ its own hit count and integrand, at 4.5 standard deviations: some 400 cells are 
 3 a few would exceed their bound by chance.
 """
 
+import os
 from dataclasses import fields
 from pathlib import Path
 
@@ -780,6 +781,48 @@ def test_wedge_order_follows_the_scene_not_mitsubas_shape_ids(monkeypatch):
     for order in (0, 1):  # direct pairs first, then those lit through a reflection: each by rank
         r = ranks[w["order"] == order]
         assert (np.diff(r) >= 0).all(), (order, r)
+
+
+_DIGEST_OF_A_RUN = """
+import hashlib, sys
+from dataclasses import fields
+import numpy as np
+sys.path.insert(0, {tests!r})
+from test_one_pass import _axes, _cfg
+import sionna.rt as rt
+from simart_pipeline.ckm import one_pass as op
+from simart_pipeline.ckm.moments import CellMoments
+from simart_pipeline.link.beams import dft_codebook
+from simart_pipeline.radio.tracer import RadioScene
+radio = RadioScene.from_config(rt.scene.simple_street_canyon, _cfg(rows=2, cols=2, pattern="tr38901"))
+for mat in radio.scene.radio_materials.values():
+    mat.scattering_coefficient = 0.3
+cb = dft_codebook(radio.array_positions_m("tx"), radio.wavelength_m, rows=2, cols=2).weights
+x, y = _axes(-60.0, 30, -30.0, 15, 4.0)
+m = op.one_pass_moments(radio, np.array([-30.0, 5.0, 20.0]), np.zeros(3), x, y, [1.5], 100_000, 3, codebook=cb,
+                        diffraction=True, edge_diffraction=True, diffuse_reflection=True, refraction=True)
+h = hashlib.sha256()
+for f in fields(CellMoments):
+    h.update(np.ascontiguousarray(getattr(m, f.name)).tobytes())
+print("digest", h.hexdigest(), int(m.count.sum()))
+"""
+
+
+def test_every_mechanism_gives_the_same_bits_in_another_process():
+    """The same call in two processes (every mechanism, a beam codebook): every moment equal to
+    the bit. Nothing in the pass may depend on what differs between processes: Mitsuba's shape
+    ids (see the wedge-order test), Python's string hashing, thread timing."""
+    import subprocess
+    import sys
+
+    digests = []
+    for seed in ("0", "1"):
+        run = subprocess.run([sys.executable, "-c", _DIGEST_OF_A_RUN.format(tests=str(TESTS))], capture_output=True,
+                             text=True, timeout=600, env={**os.environ, "PYTHONHASHSEED": seed})
+        assert run.returncode == 0, run.stderr[-3000:]
+        digests.append([ln for ln in run.stdout.splitlines() if ln.startswith("digest")][-1])
+    assert int(digests[0].split()[2]) > 10_000, digests
+    assert digests[0] == digests[1], digests
 
 
 def test_diffracted_bundle_area_equals_sionnas_change_of_variables():
