@@ -713,7 +713,13 @@ def _per_cell_loop_s(radio, tx, ori, cells_xyz: np.ndarray, budget_s: float = fl
     return float(np.mean(times)), len(times)
 
 
-def _against_radio_map(one_pass_unpolarised, radio_map, num_rays: int, n_cells: int, eligible: np.ndarray,
+def whole_cell_db(m: op.OnePassMoments) -> np.ndarray:
+    """The one-pass's path gain (dB) over the whole cell area, RadioMapSolver's normalisation: the
+    layer is per outdoor area, so the cells outside the mask get their outdoor share back."""
+    return m.layers()["path_gain_db"][0] + 10 * np.log10(np.where(~m.masked[0], m.outdoor_fraction[0], 1))
+
+
+def _against_radio_map(one_pass_unpolarised, radio_map, num_rays: int, n_cells: int,
                        one_pass_v_s: float, repeats: int = WARM_REPEATS, first_order_one_pass=None,
                        radio_map_other_seed=None, equal_error=None) -> dict:
     """The one-pass run like for like with RadioMapSolver (``|E|^2``, no V projection, every layer
@@ -728,9 +734,6 @@ def _against_radio_map(one_pass_unpolarised, radio_map, num_rays: int, n_cells: 
     its agreement with the first is the Monte-Carlo floor of any comparison at that ray count.
     ``equal_error``: {"counts", "reference_rays", "one_pass_at(n, **kw)"} for
     :func:`equal_error_front` (RadioMapSolver's reference: ``radio_map_other_seed``)."""
-    def whole_cell_db(m):
-        return m.layers()["path_gain_db"][0] + 10 * np.log10(np.where(eligible, m.outdoor_fraction[0], 1))
-
     m, first_s, warm_s = _warm(one_pass_unpolarised, repeats)
     whole = whole_cell_db(m)
 
@@ -937,7 +940,7 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
         "errors_vs_cell_points": _compare(fast_at, ref_points),
         "errors_vs_cell_points_pathsolver_diffuse_model": diffuse_model,
         "radio_map_solver": _against_radio_map(
-            one_pass(num_rays, None), radio_map, num_rays, n_cells, eligible, fast_s, repeats,
+            one_pass(num_rays, None), radio_map, num_rays, n_cells, fast_s, repeats,
             one_pass(num_rays, None, diffraction_with_reflections=False) if switches["diffraction"] else None,
             lambda n: radio_map_path_gain_db(radio, other_seed, HEIGHT_M, n)[0],
             {"counts": sorted({c for c in EQUAL_ERROR_COUNTS if c < num_rays} | {num_rays}),

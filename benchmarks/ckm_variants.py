@@ -70,12 +70,6 @@ class SceneRuns:
         return lambda: radio_map_path_gain_db(self.radio, self.cfg, cs.HEIGHT_M, n)[0]
 
 
-def whole_cell_db(m: op.OnePassMoments) -> np.ndarray:
-    """The one-pass's unpolarised path gain over the whole cell area (RadioMapSolver's)."""
-    eligible = ~m.masked[0]
-    return m.layers()["path_gain_db"][0] + 10 * np.log10(np.where(eligible, m.outdoor_fraction[0], 1))
-
-
 def _layers(m: op.OnePassMoments) -> dict[str, np.ndarray]:
     layers = m.layers()
     return {k: np.asarray(layers[k][0]) for k in SAVED_LAYERS if k in layers}
@@ -103,7 +97,7 @@ def run_scene(name: str, ray_counts, batch_rays, out: Path, log=print) -> dict:
             res["batch_rays"][str(b)] = {"first_call_s": cs._r3(first), "warm_s": round(warm, 3)}
             log(f"{name} one-pass {main:.0e} batch {b}: {res['batch_rays'][str(b)]}", flush=True)
         m, first, warm = cs._warm(s.one_pass(main, None), 1)
-        maps["one_pass_unpolarised_whole_cell_db"] = whole_cell_db(m)
+        maps["one_pass_unpolarised_whole_cell_db"] = cs.whole_cell_db(m)
         res["one_pass_unpolarised"] = {"rays": main, "first_call_s": cs._r3(first), "warm_s": round(warm, 3)}
         for n in ray_counts:
             g, first, warm = cs._warm(s.radio_map(n), 1 if n == main else 0)

@@ -349,13 +349,20 @@ def test_one_wall_reflects_with_the_itu_slab_te_tm_coefficients(tmp_path, tx_pol
         assert (np.abs(refl / f[pol].mean(-1) - 1) < _mc_bound(m.count[0], f[pol])).all(), pol
 
 
-def test_results_do_not_depend_on_the_batch_size(tmp_path):
+def _ground_and_wall_run(tmp_path):
+    """(one_pass_moments' positional arguments, a 2 x 2 DFT codebook): ground and a brick wall,
+    two grid heights, 200,000 rays, two reflections."""
     xml = _write_scene(tmp_path / "gw", {"ground": (_ground(), "medium_dry_ground"),
                                          "wall": (_wall(12.0), "brick")}, 0.3)
     radio = RadioScene.from_config(xml, _cfg(rows=2, cols=2, pattern="tr38901"))
     cb = dft_codebook(radio.array_positions_m("tx"), radio.wavelength_m, rows=2, cols=2).weights
     x, y = _axes(-4.0, 8, -6.0, 6, 2.0)
     args = (radio, np.array([0.0, 1.0, 8.0]), np.array([0.2, 0.1, 0.0]), x, y, np.array([1.5, 3.0]), 200_000, 2)
+    return args, cb
+
+
+def test_results_do_not_depend_on_the_batch_size(tmp_path):
+    args, cb = _ground_and_wall_run(tmp_path)
     one = op.one_pass_moments(*args, codebook=cb, batch_rays=200_000)
     many = op.one_pass_moments(*args, codebook=cb, batch_rays=30_011)  # 7 batches, the last short
     again = op.one_pass_moments(*args, codebook=cb, batch_rays=30_011)
@@ -379,12 +386,7 @@ def test_beams_evaluated_per_set_or_once_for_many_sets_agree(tmp_path, monkeypat
     once per distinct direction; flushed after every set instead (MAX_PENDING_GROUPS 0, the
     evaluation per set of before) the beam powers agree to float64 rounding and every other
     moment to the bit. Two heights, several batches and reflections: many sets share directions."""
-    xml = _write_scene(tmp_path / "gw", {"ground": (_ground(), "medium_dry_ground"),
-                                         "wall": (_wall(12.0), "brick")}, 0.3)
-    radio = RadioScene.from_config(xml, _cfg(rows=2, cols=2, pattern="tr38901"))
-    cb = dft_codebook(radio.array_positions_m("tx"), radio.wavelength_m, rows=2, cols=2).weights
-    x, y = _axes(-4.0, 8, -6.0, 6, 2.0)
-    args = (radio, np.array([0.0, 1.0, 8.0]), np.array([0.2, 0.1, 0.0]), x, y, np.array([1.5, 3.0]), 200_000, 2)
+    args, cb = _ground_and_wall_run(tmp_path)
     pooled = op.one_pass_moments(*args, codebook=cb, batch_rays=30_011)
     monkeypatch.setattr(op, "MAX_PENDING_GROUPS", 0)
     per_set = op.one_pass_moments(*args, codebook=cb, batch_rays=30_011)

@@ -158,7 +158,6 @@ class _Accumulator:
         self.stretch_keys: list[np.ndarray] = []  # distinct (cell << 32 | stretch) of tagged deposits
         # (cells, direction keys, power sums) of the deposit sets whose beams are still to add
         self.beam_groups: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-        self.pending_groups = 0
 
     def __call__(self, dep: dict[str, np.ndarray], line_of_sight: bool) -> None:
         m = self.m
@@ -181,8 +180,7 @@ class _Accumulator:
             dkey = dkey.view(np.int64) if dkey.dtype == np.uint64 else dkey.astype(np.int64)
             groups = _group_sums(cell, dkey, p.astype(np.float64), len(self.m.power))
             self.beam_groups.append(groups)
-            self.pending_groups += len(groups[0])
-            if self.pending_groups > MAX_PENDING_GROUPS:
+            if sum(len(g[0]) for g in self.beam_groups) > MAX_PENDING_GROUPS:
                 self._add_beams()
 
     def summed(self) -> CellMoments:
@@ -200,7 +198,7 @@ class _Accumulator:
             g_cell, g_dkey, pg = self.beam_groups[0]
         else:  # a (cell, direction) group may recur in several sets: one group again
             g_cell, g_dkey, pg = _group_sums(*(np.concatenate(a) for a in zip(*self.beam_groups)), len(self.m.power))
-        self.beam_groups, self.pending_groups = [], 0
+        self.beam_groups = []
         # many cells share a direction (diffracted paths: on DEPARTURE_QUANTUM's grid): evaluate
         # each distinct direction once
         inverse, keys = pd.factorize(g_dkey, sort=False)
