@@ -402,6 +402,56 @@ def test_a_duplicate_path_counts_once_and_a_near_equal_distinct_one_is_kept():
     assert np.sum(np.abs(out["a"][0, 0, 0, 0]) ** 2) == 3
 
 
+def _duplicates_by_every_pair(valid, inter, obj, prim, vert, tolerance_m):
+    """The definition of drop_duplicate_paths' rule, pair by pair: a path repeats one kept before
+    it with the same id sequences and every vertex coordinate within the tolerance."""
+    valid = valid.copy()
+    for r, t in np.ndindex(valid.shape[:2]):
+        kept: list[int] = []
+        for k in np.flatnonzero(valid[r, t]):
+            same = [j for j in kept if (inter[r, t, :, j] == inter[r, t, :, k]).all()
+                    and (obj[r, t, :, j] == obj[r, t, :, k]).all() and (prim[r, t, :, j] == prim[r, t, :, k]).all()]
+            if any(np.abs(vert[r, t, :, k].astype(np.float64) - vert[r, t, :, j]).max() <= tolerance_m for j in same):
+                valid[r, t, k] = False
+            else:
+                kept.append(k)
+    return valid
+
+
+def test_duplicate_paths_among_thousands_on_one_primitive_follow_the_pairwise_rule():
+    """Diffuse reflection puts thousands of a receiver's paths on one primitive (a ground
+    triangle). Random paths in a few id groups, with planted repeats: exact copies, copies moved
+    within the tolerance, chains (b repeats a, c is within the tolerance of b only: c is kept,
+    b being dropped), a non-finite vertex (repeats nothing) and invalid paths. The grouped k-d
+    tree gives the pairwise rule's answer on every link."""
+    from simart_pipeline.radio.tracer import drop_duplicate_paths
+
+    rng = np.random.default_rng(7)
+    num_rx, num_tx, depth, n, tol = 3, 2, 3, 600, 0.01
+    inter = rng.integers(0, 2, (num_rx, num_tx, depth, n)).astype(np.uint8)
+    obj = rng.integers(0, 2, (num_rx, num_tx, depth, n)).astype(np.uint32)
+    prim = rng.integers(0, 2, (num_rx, num_tx, depth, n)).astype(np.uint32)
+    # coarse vertices: many near pairs by chance as well as the planted ones
+    vert = (rng.integers(0, 40, (num_rx, num_tx, depth, n, 3)) * 0.006).astype(np.float32)
+    for r, t in np.ndindex(num_rx, num_tx):
+        for k in rng.choice(n - 2, 60, replace=False):
+            for a in (inter, obj, prim):
+                a[r, t, :, k + 1] = a[r, t, :, k + 2] = a[r, t, :, k]
+            step = rng.uniform(0.6, 0.95) * tol
+            vert[r, t, :, k + 1] = vert[r, t, :, k] + step  # repeats k
+            vert[r, t, :, k + 2] = vert[r, t, :, k] + 2 * step  # within tol of k + 1 only
+    vert[0, 0, 1, 5, 2] = np.nan
+    valid = rng.random((num_rx, num_tx, n)) > 0.05
+    d = {"valid": valid, "interaction": inter, "objects": obj, "primitives": prim, "vertices_m": vert,
+         "a": np.ones((num_rx, 1, num_tx, 1, n), np.complex64)}
+    out = drop_duplicate_paths(d, tol)
+    expected = _duplicates_by_every_pair(valid, inter, obj, prim, vert, tol)
+    assert (out["valid"] == expected).all()
+    assert 0.05 < 1 - expected.sum() / valid.sum() < 0.5  # many dropped, many kept
+    assert out["valid"][0, 0, 5] == valid[0, 0, 5]  # the NaN vertex: no repeat of any path
+    assert (out["a"][:, 0, :, 0] == expected).all()
+
+
 def test_a_path_with_a_non_finite_amplitude_is_no_path_and_is_counted():
     """PathSolver 2.2 returned valid line-of-sight entries with NaN amplitudes (refraction, 1e6
     samples): such an entry is marked invalid, the others (finite on every antenna pair) stay,
