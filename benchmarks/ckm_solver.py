@@ -144,8 +144,12 @@ MAX_DEPTH = 3
 # (diffraction, reflection) chains that leave a wedge into the lit region: on the street canyon
 # at (13, -42) m a -113.7 dB D-R path (half the cell's power) appears at 1e6 and stays up to 4e8,
 # and the 200 sampled cells' gain error falls from p95 2.36 to 1.08 dB, best beam 91 -> 94 %
-# (urban: 89.9 -> 96.0 %). With diffuse reflection ("all") 1e6 costs 20 s per receiver: 1e5.
-REFERENCE_SAMPLES = {"los_specular": 100_000, "diffraction": 1_000_000, "all": 100_000}
+# (urban: 89.9 -> 96.0 %). With diffuse reflection ("all") PathSolver's diffuse paths are a
+# sampling of the lit surfaces: at 1e5 samples a far Munich cell held 4 of them, at 1e6 30-85, and
+# the 1e5 reference picked another best beam than the 1e6 one at 7 of 39 centres (docs/ckm-one-pass.md
+# "Session 23"). 1e6 costs 0.7-1.7 s per receiver since duplicate paths are found per primitive
+# sequence (20 s before, most of it that search).
+REFERENCE_SAMPLES = {"los_specular": 100_000, "diffraction": 1_000_000, "all": 1_000_000}
 # Points per side of the square grid of PathSolver receivers that estimates a cell's mean (odd: the
 # centre among them), per set. The layers are ray-tube means over the cell; with diffraction the
 # beams of a cell near a shadow boundary are close (near-ties within 0.1 - 1.5 dB), and 3 x 3 points
@@ -153,10 +157,10 @@ REFERENCE_SAMPLES = {"los_specular": 100_000, "diffraction": 1_000_000, "all": 1
 # the 95 % target leaves: the one-pass agrees with 5 x 5 (and 6 x 6) in 96.0 %, with 3 x 3 in 94.0 %
 # (2.5x the reference's time). Specular paths vary little within a 2 m cell: 3 x 3.
 REFERENCE_POINTS_PER_SIDE = {"los_specular": 3, "diffraction": 5, "all": 3}
-# With diffuse reflection the reference merges two PathSolver runs of the same receivers: every path
-# without a diffuse reflection from a run with diffuse reflection off at these samples (diffraction
-# needs 1e6, above; 1e6 with diffuse reflection costs 20 s per receiver), and the diffuse paths
-# from the run at REFERENCE_SAMPLES (:func:`merged_paths`).
+# With diffuse reflection, where a scene's reference samples for the set are fewer than these, the
+# reference merges two PathSolver runs of the same receivers: every path without a diffuse
+# reflection from a run with diffuse reflection off at these samples (diffraction needs 1e6,
+# above), and the diffuse paths from the run at the set's samples (:func:`merged_paths`).
 REFERENCE_NON_DIFFUSE_SAMPLES = 1_000_000
 SPREADS = ("asa_deg", "asd_deg", "zsa_deg", "zsd_deg")
 RAY_COUNTS = (10**5, 10**6, 10**7, 10**8)
@@ -179,16 +183,15 @@ ALL_SCATTERING_COEFFICIENT = 0.3
 # Sets with a ray-count sweep, and the scenes where it goes above the main ray count (with
 # diffraction a 1e8-ray pass of either solver takes minutes: the street canyon alone).
 SWEEP_SETS = {"los_specular": tuple(SCENES), "diffraction": ("street_canyon",)}
-# Sampled cells per set (quick, full). PathSolver with diffuse reflection finds thousands of paths
-# per receiver (0.3-0.5 s each, 2 cores): the "all" set's sample is the small one.
+# Sampled cells per set (quick, full). PathSolver with diffuse reflection at 1e6 samples finds up to
+# 25,000 paths per receiver (0.7-1.7 s each, 2 cores): the "all" set's sample is the small one.
 COMPARE_CELLS = {"los_specular": (40, 600), "diffraction": (12, 200), "all": (12, 40)}
 # The reference's own convergence where diffraction is on: PathSolver finds a wedge only where its
 # samples hit it, and at 1e5 samples it misses first-order diffracted paths that 1e6 and 1e7 find
 # (urban scene: cells 30-50 dB below the one-pass, which 1e6 samples bring to it; Munich, 200 cell
 # centres: 1e5 against 1e7 samples p95 16 dB, 1e6 against 1e7 p95 6 dB). A whole 1e7-sample
 # reference costs 4.9 s per receiver (9 points x 200 cells: 2.5 h): the centres of the cells with
-# the largest gain errors are traced again at REFERENCE_CHECK_SAMPLES (not for "all": with diffuse
-# reflection 1e6 samples cost 20 s per receiver).
+# the largest gain errors are traced again at REFERENCE_CHECK_SAMPLES (the diffraction set's).
 REFERENCE_CHECK_SETS = ("diffraction",)
 REFERENCE_CHECK_CELLS = (3, 10)  # (quick, full)
 REFERENCE_CHECK_SAMPLES = 10**7
@@ -246,6 +249,15 @@ _LETTERS = {int(InteractionKind.SPECULAR): "R", int(InteractionKind.DIFFUSE): "S
 def reference_samples(spec: dict, mechanisms: str) -> int:
     """PathSolver's samples per source for the main reference and the per-cell loop of a set on a scene."""
     return int(spec.get("reference_samples", {}).get(mechanisms, REFERENCE_SAMPLES[mechanisms]))
+
+
+def non_diffuse_samples(spec: dict, mechanisms: str, diffuse_reflection: bool) -> int | None:
+    """Samples of the second PathSolver run whose paths without a diffuse reflection the reference
+    takes (:func:`merged_paths`), or None where it takes them from its one run: diffuse reflection
+    off, or the set's samples at least REFERENCE_NON_DIFFUSE_SAMPLES."""
+    if not diffuse_reflection or reference_samples(spec, mechanisms) >= REFERENCE_NON_DIFFUSE_SAMPLES:
+        return None
+    return REFERENCE_NON_DIFFUSE_SAMPLES
 
 
 @contextlib.contextmanager
@@ -870,7 +882,7 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
     per_side = sizes.get("points_per_side", REFERENCE_POINTS_PER_SIDE[mechanisms])
     ref_centre, ref_points, s_per_rx, paths = _pathsolver_reference(
         radio, tx, ori, cells_xyz[pick], codebook, per_side,
-        non_diffuse_samples=REFERENCE_NON_DIFFUSE_SAMPLES if switches["diffuse_reflection"] else None)
+        non_diffuse_samples=non_diffuse_samples(spec, mechanisms, switches["diffuse_reflection"]))
     refs = {"vs_centre": ref_centre, "vs_cell_points": ref_points}
     fast_at = _layers_at(m, pick)
     cov = coverage(fast_at, refs, paths, pool=per_side * per_side)
@@ -920,7 +932,7 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
                      "second_pass": m.second_pass,
                      "coverage_pct": _coverage_pct(fast["path_gain_db"][0], eligible)},
         "pathsolver": {"samples_per_src": reference_samples(spec, mechanisms),
-                       "non_diffuse_samples_per_src": REFERENCE_NON_DIFFUSE_SAMPLES if switches["diffuse_reflection"] else None,
+                       "non_diffuse_samples_per_src": non_diffuse_samples(spec, mechanisms, switches["diffuse_reflection"]),
                        "compared_cells": int(pick.size),
                        "points_per_cell": per_side * per_side, "cap_retries": int(radio.cap_retries - retries0),
                        "per_cell_call_s": round(per_call_s, 4), "per_cell_calls_timed": calls_timed,
