@@ -39,8 +39,9 @@ Per scene and set:
   the gain is their mean). The cell layers are judged against the n x n points (ToA at the centre,
   the layer's definition);
 - **the reference's convergence** (the sets of :data:`REFERENCE_CHECK_SETS`): PathSolver finds a
-  wedge only where its samples hit it, so the centres of the cells with the largest gain errors
-  are traced again at :data:`REFERENCE_CHECK_SAMPLES` samples (:func:`reference_check`), and
+  wedge, and a diffusely reflecting point, only where its samples hit it, so the centres of the
+  cells with the largest gain errors are traced again at :data:`REFERENCE_CHECK_SAMPLES` samples
+  (:func:`reference_check`: gains and best beams against both references), and
   the centres of a random subset of the compared cells at :data:`CONVERGED_REFERENCE_SAMPLES`
   (:func:`against_converged_reference`: the errors against a reference whose reflection-diffraction
   chains have converged; ``--converged-points 9``: at 3 x 3 points per cell, 9x the time);
@@ -191,8 +192,11 @@ COMPARE_CELLS = {"los_specular": (40, 600), "diffraction": (12, 200), "all": (12
 # (urban scene: cells 30-50 dB below the one-pass, which 1e6 samples bring to it; Munich, 200 cell
 # centres: 1e5 against 1e7 samples p95 16 dB, 1e6 against 1e7 p95 6 dB). A whole 1e7-sample
 # reference costs 4.9 s per receiver (9 points x 200 cells: 2.5 h): the centres of the cells with
-# the largest gain errors are traced again at REFERENCE_CHECK_SAMPLES (the diffraction set's).
-REFERENCE_CHECK_SETS = ("diffraction",)
+# the largest gain errors are traced again at REFERENCE_CHECK_SAMPLES. With diffuse reflection too:
+# on Munich PathSolver's far diffuse paths are still a few samples at 1e6 (its best beam agrees with
+# its own 1e7 one at 74 % of 39 centres, docs/ckm-one-pass.md "Session 23"); 1e7 costs about 11 s a
+# receiver there.
+REFERENCE_CHECK_SETS = ("diffraction", "all")
 REFERENCE_CHECK_CELLS = (3, 10)  # (quick, full)
 REFERENCE_CHECK_SAMPLES = 10**7
 # A converged reference: with diffraction PathSolver finds reflection-diffraction-reflection chains
@@ -633,10 +637,19 @@ def reference_check(radio, tx, ori, centres_xyz: np.ndarray, fast_at: dict, ref_
     again = layers_from_moments(_reference_moments(paths, tau0, codebook))
     fast_g, before = fast_at["path_gain_db"][worst], ref_centre["path_gain_db"][worst]
     after = np.where(again["has_path"], again["path_gain_db"], np.nan)
+    fast_bb = np.where(fast_at["has_path"][worst], fast_at["best_beam"][worst], -1)
+
+    def beams_agree_pct(ref_bb):
+        both = (fast_bb >= 0) & (ref_bb >= 0)
+        return round(100 * float((fast_bb[both] == ref_bb[both]).mean()), 1) if both.any() else None
+
     return {"samples_per_src": int(samples), "cells": int(worst.size), "s": round(s, 2),
             "abs_err_db_main_reference": _percentiles(np.abs(fast_g - before)),
             "abs_err_db_this_reference": _percentiles(np.abs(fast_g - after)),
             "reference_moved_gt_1_db": int((~(np.abs(after - before) <= 1.0)).sum()),
+            "best_beam_agree_pct_main_reference": beams_agree_pct(
+                np.where(ref_centre["has_path"][worst], ref_centre["best_beam"][worst], -1)),
+            "best_beam_agree_pct_this_reference": beams_agree_pct(np.where(again["has_path"], again["best_beam"], -1)),
             "signed_err_db_main_reference": np.round(fast_g - before, 2).tolist(),
             "signed_err_db_this_reference": np.round(fast_g - after, 2).tolist()}
 
@@ -1280,10 +1293,12 @@ def _set_section(results: dict, key: str, title: str, intro: str, columns: list[
 def _reference_check_lines(results: dict) -> list[str]:
     def row(c):
         if not c.get("cells"):
-            return f"0 | {c['samples_per_src']:.0e} | | | | | |"
+            return f"0 | {c['samples_per_src']:.0e} | | | | | | |"
         return (f"{c['cells']} | {c['samples_per_src']:.0e} | {c['s']} | "
                 f"{_pp(c['abs_err_db_main_reference'])} | {_pp(c['abs_err_db_this_reference'])} | "
-                f"{c['reference_moved_gt_1_db']} | {' '.join(f'{v:g}' for v in c['signed_err_db_main_reference'])} | "
+                f"{c['reference_moved_gt_1_db']} | {_f(c.get('best_beam_agree_pct_main_reference'))} / "
+                f"{_f(c.get('best_beam_agree_pct_this_reference'))} | "
+                f"{' '.join(f'{v:g}' for v in c['signed_err_db_main_reference'])} | "
                 f"{' '.join(f'{v:g}' for v in c['signed_err_db_this_reference'])}")
 
     return _set_section(
@@ -1291,9 +1306,10 @@ def _reference_check_lines(results: dict) -> list[str]:
         "The sampled cells whose centre gain differs most from the one-pass layer, traced again at their "
         "centre with more PathSolver samples: |one-pass - PathSolver| there against the main reference "
         "(the set's samples, see above) and against this one, and how many reference gains moved by more "
-        "than 1 dB (or appeared). Signed errors (one-pass - PathSolver, dB) in cell order.",
+        "than 1 dB (or appeared); the one-pass's best beam against each reference's in those cells. "
+        "Signed errors (one-pass - PathSolver, dB) in cell order.",
         ["cells", "samples", "s", "error dB p50 / p95, main reference", "with more samples", "moved > 1 dB",
-         "signed, main", "signed, more samples"], row)
+         "best beam % main / more samples", "signed, main", "signed, more samples"], row)
 
 
 def _converged_reference_lines(results: dict) -> list[str]:

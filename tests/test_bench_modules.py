@@ -296,7 +296,8 @@ def _set_result(mechanisms: str, seed: int = 0) -> dict:
         r["reference_check"] = {"samples_per_src": 10**6, "cells": 2, "s": 1.0,
                                 "abs_err_db_main_reference": {"p50": 7.0, "p95": 12.0, "n": 2},
                                 "abs_err_db_this_reference": {"p50": 0.2, "p95": 0.3, "n": 2},
-                                "reference_moved_gt_1_db": 1, "signed_err_db_main_reference": [13.1, 0.2],
+                                "reference_moved_gt_1_db": 1, "best_beam_agree_pct_main_reference": 50.0,
+                                "best_beam_agree_pct_this_reference": 100.0, "signed_err_db_main_reference": [13.1, 0.2],
                                 "signed_err_db_this_reference": [0.2, 0.2]}
     if mechanisms in cs.CONVERGED_REFERENCE_SETS:
         r["against_converged_reference"] = {
@@ -364,7 +365,7 @@ def test_ckm_solver_targets_and_report_cover_every_mechanism_set(tmp_path):
     for m in cs.MECHANISM_SETS:
         assert f"| canyon | {m} |" in md and f"- canyon, {m}: " in md
     assert "not run: predicted 400 s" in md and "## Coverage" in md
-    assert "| canyon | diffraction | 2 | 1e+06 | 1.0 | 7 / 12 | 0.2 / 0.3 | 1 | 13.1 0.2 | 0.2 0.2 |" in md
+    assert "| canyon | diffraction | 2 | 1e+06 | 1.0 | 7 / 12 | 0.2 / 0.3 | 1 | 50 / 100 | 13.1 0.2 | 0.2 0.2 |" in md
     # like for like with RadioMapSolver: the first-order run's agreement, judged; the full run's without diffraction
     assert "| canyon | diffraction | 2.5 (1.25) | 0.15 / 0.285 (2) | 0.1 / 0.19 | 0.025 / 0.0475 |" in md
     assert "| canyon | los_specular | the full run | 0.025 / 0.0475 (2) | 0.1 / 0.19 | - |" in md
