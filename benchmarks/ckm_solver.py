@@ -108,7 +108,7 @@ import json
 import platform
 import tempfile
 import time
-from dataclasses import fields
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -536,12 +536,12 @@ def coverage(fast_at: dict, refs: dict, paths, pool: int = 9) -> dict:
     """Of the sampled cells where PathSolver finds a path, how many the one-pass layers cover.
 
     ``fast_at``: :func:`_layers_at`; ``refs``: ``vs_cell_points`` and ``vs_centre`` layers; ``paths``: the
-    reference run's TracedPaths (``pool`` receivers per cell), whose interaction sequences say what the
+    reference run's TracedPaths or :class:`PathPowers` (``pool`` receivers per cell), whose interaction sequences say what the
     one-pass misses (``missed``) and what PathSolver finds in every cell it reaches (``reached``)."""
     fast_has, reached = fast_at["has_path"], refs["vs_cell_points"]["has_path"]
     missed = reached & ~fast_has
-    power = (np.abs(paths.a[:, :, 0]) ** 2).mean(axis=(1, 2))  # [rx, path]
-    inter, valid = paths.interaction[:, 0], paths.valid[:, 0]
+    pp = paths if isinstance(paths, PathPowers) else PathPowers.of(paths)
+    power, inter, valid = pp.power, pp.interaction, pp.valid
     return {"sampled_cells": int(len(reached)), "reached_by_pathsolver": int(reached.sum()),
             "covered_of_reached_pct": _covered_of_reached_pct(fast_has, reached),
             "missed": int(missed.sum()),
@@ -589,22 +589,69 @@ def _cell_points(centres: np.ndarray, per_side: int = 3) -> np.ndarray:
     return (centres[:, None, :] + np.stack([ox, oy, np.zeros(ox.size)], -1)[None]).reshape(-1, 3)
 
 
+@dataclass
+class PathPowers:
+    """What :func:`coverage` reads of a reference run, per receiver and path: the power (mean over
+    the antenna pairs), the interaction sequence and validity; a few MB where the run's amplitudes
+    (every antenna pair) take GBs."""
+
+    power: np.ndarray        # [rx, path]
+    interaction: np.ndarray  # [rx, depth, path]
+    valid: np.ndarray        # [rx, path]
+
+    @classmethod
+    def of(cls, paths) -> "PathPowers":
+        """From a TracedPaths of one transmitter."""
+        return cls((np.abs(paths.a[:, :, 0]) ** 2).mean(axis=(1, 2)), paths.interaction[:, 0], paths.valid[:, 0])
+
+    @classmethod
+    def concat(cls, parts: list["PathPowers"]) -> "PathPowers":
+        """Receivers of several runs, their paths padded to the most (power 0, invalid)."""
+        n = max(p.power.shape[-1] for p in parts)
+
+        def pad(a, fill=0):
+            return np.pad(a, [(0, 0)] * (a.ndim - 1) + [(0, n - a.shape[-1])], constant_values=fill)
+
+        return cls(*(np.concatenate([pad(getattr(p, k)) for p in parts]) for k in ("power", "interaction", "valid")))
+
+
+# Cells whose points one PathSolver trace of the reference holds. With diffuse reflection at 1e6
+# samples a receiver holds up to 25,000 paths, and the amplitudes of 360 receivers at once (every
+# antenna pair, padded to the most paths) took this 24 GB machine out of memory. (PathSolver's
+# diffuse paths depend a little on which receivers share a call, as with RadioScene.trace's own
+# batches: street canyon, 11 cells at 1e4 samples, 8 against all at once, gain at most 0.05 dB.)
+REFERENCE_CELLS_PER_TRACE = 8
+
+
 def _pathsolver_reference(radio, tx, ori, centres, codebook, per_side: int = 3,
-                          non_diffuse_samples: int | None = None) -> tuple[dict, dict, float, object]:
+                          non_diffuse_samples: int | None = None) -> tuple[dict, dict, float, PathPowers]:
     """PathSolver at n x n points in each cell (``n = per_side``; the middle one its centre):
-    (centre layers, pooled n x n layers, s per receiver of the batched run(s), the run's TracedPaths).
-    ``non_diffuse_samples`` (diffuse reflection on): the paths without a diffuse reflection from a
-    second run at these samples with it off (:func:`merged_paths`)."""
+    (centre layers, pooled n x n layers, s per receiver of the batched runs, the runs'
+    :class:`PathPowers`). ``non_diffuse_samples`` (diffuse reflection on): the paths without a
+    diffuse reflection from a second run at these samples with it off (:func:`merged_paths`).
+    Traced :data:`REFERENCE_CELLS_PER_TRACE` cells at a time, each part reduced to its layers."""
     tau0 = np.linalg.norm(centres - tx, axis=-1) / SPEED_OF_LIGHT
-    points = _cell_points(centres, per_side)
     pool = per_side * per_side
-    t = time.perf_counter()
-    p_points = radio.trace(tx[None], ori[None], points)
-    if non_diffuse_samples is not None and radio.solver_config.diffuse_reflection:
-        with _samples(radio, non_diffuse_samples, diffuse_reflection=False):
-            p_points = merged_paths(radio.trace(tx[None], ori[None], points), p_points)
-    s_per_rx = (time.perf_counter() - t) / len(points)
-    return (*_centre_and_pooled_layers(p_points, tau0, codebook, pool), s_per_rx, p_points)
+    centre_parts, pooled_parts, powers, trace_s = [], [], [], 0.0
+    for lo in range(0, len(centres), REFERENCE_CELLS_PER_TRACE):
+        part = slice(lo, lo + REFERENCE_CELLS_PER_TRACE)
+        points = _cell_points(centres[part], per_side)
+        t = time.perf_counter()
+        p_points = radio.trace(tx[None], ori[None], points)
+        if non_diffuse_samples is not None and radio.solver_config.diffuse_reflection:
+            with _samples(radio, non_diffuse_samples, diffuse_reflection=False):
+                p_points = merged_paths(radio.trace(tx[None], ori[None], points), p_points)
+        trace_s += time.perf_counter() - t
+        at_centre, pooled = _centre_and_pooled_layers(p_points, tau0[part], codebook, pool)
+        centre_parts.append(at_centre)
+        pooled_parts.append(pooled)
+        powers.append(PathPowers.of(p_points))
+        del p_points
+
+    def cat(parts):
+        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+    return cat(centre_parts), cat(pooled_parts), trace_s / (len(centres) * pool), PathPowers.concat(powers)
 
 
 def _centre_and_pooled_layers(paths, tau0_s: np.ndarray, codebook, pool: int) -> tuple[dict, dict]:
