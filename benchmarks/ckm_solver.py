@@ -536,8 +536,9 @@ def coverage(fast_at: dict, refs: dict, paths, pool: int = 9) -> dict:
     """Of the sampled cells where PathSolver finds a path, how many the one-pass layers cover.
 
     ``fast_at``: :func:`_layers_at`; ``refs``: ``vs_cell_points`` and ``vs_centre`` layers; ``paths``: the
-    reference run's TracedPaths or :class:`PathPowers` (``pool`` receivers per cell), whose interaction sequences say what the
-    one-pass misses (``missed``) and what PathSolver finds in every cell it reaches (``reached``)."""
+    reference run's TracedPaths or :class:`PathPowers` (``pool`` receivers per cell), whose
+    interaction sequences say what the one-pass misses (``missed``) and what PathSolver finds in
+    every cell it reaches (``reached``)."""
     fast_has, reached = fast_at["has_path"], refs["vs_cell_points"]["has_path"]
     missed = reached & ~fast_has
     pp = paths if isinstance(paths, PathPowers) else PathPowers.of(paths)
@@ -609,8 +610,8 @@ class PathPowers:
         """Receivers of several runs, their paths padded to the most (power 0, invalid)."""
         n = max(p.power.shape[-1] for p in parts)
 
-        def pad(a, fill=0):
-            return np.pad(a, [(0, 0)] * (a.ndim - 1) + [(0, n - a.shape[-1])], constant_values=fill)
+        def pad(a):  # zeros: no power, no interaction, not valid
+            return np.pad(a, [(0, 0)] * (a.ndim - 1) + [(0, n - a.shape[-1])])
 
         return cls(*(np.concatenate([pad(getattr(p, k)) for p in parts]) for k in ("power", "interaction", "valid")))
 

@@ -242,6 +242,17 @@ def test_coverage_counts_missed_and_extra_cells_and_names_what_pathsolver_found(
     assert c["covered_of_reached_pct"] == 50.0 and c["vs_centre"]["covered_of_reached_pct"] == 100.0
     assert c["pathsolver_interactions"]["missed"]["sequences"] == {"D": {"share_pct": 100.0, "paths": 9}}
     assert c["missed_pathsolver_gain_db"]["n"] == 1
+    # the reference traced in parts (ckm_solver._pathsolver_reference): the second part's run held
+    # two path slots (the second invalid), the first's one, padded on concatenation; same table
+    from benchmarks.ckm_solver import PathPowers
+
+    first = SimpleNamespace(a=paths.a[:18], interaction=inter[:18], valid=valid[:18])
+    second = SimpleNamespace(a=np.concatenate([paths.a[18:], np.ones((18, 1, 1, 1, 1), complex)], -1),
+                             interaction=np.concatenate([inter[18:], np.ones((18, 1, 1, 1), np.uint8)], -1),
+                             valid=np.concatenate([valid[18:], np.zeros((18, 1, 1), bool)], -1))
+    parts = PathPowers.concat([PathPowers.of(first), PathPowers.of(second)])
+    assert parts.power.shape == parts.valid.shape == (36, 2) and parts.interaction.shape == (36, 1, 2)
+    assert coverage(fast, {"vs_cell_points": ref3, "vs_centre": centre}, parts) == c
 
 
 def test_per_cell_loop_stops_after_its_budget_but_times_at_least_the_minimum():
