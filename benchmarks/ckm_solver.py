@@ -149,7 +149,7 @@ MAX_DEPTH = 3
 # sampling of the lit surfaces: at 1e5 samples a far Munich cell held 4 of them, at 1e6 30-85, and
 # the 1e5 reference picked another best beam than the 1e6 one at 7 of 39 centres (docs/ckm-one-pass.md
 # "Session 23"). 1e6 costs 0.7-1.7 s per receiver since duplicate paths are found per primitive
-# sequence (20 s before, most of it that search).
+# sequence (20 s in session 16, when that search compared every pair).
 REFERENCE_SAMPLES = {"los_specular": 100_000, "diffraction": 1_000_000, "all": 1_000_000}
 # Points per side of the square grid of PathSolver receivers that estimates a cell's mean (odd: the
 # centre among them), per set. The layers are ray-tube means over the cell; with diffraction the

