@@ -5,6 +5,9 @@ Per scene (every mechanism, the ``all`` set of :mod:`benchmarks.ckm_solver`, its
 and seed): warm times of the one-pass (V receiver, every layer) and of RadioMapSolver at each ray
 count, the one-pass at several ray batch sizes, the one-pass like for like with RadioMapSolver
 (``|E|^2``), the per-cell PathSolver loop, and the maps themselves (``maps_<scene>.npz``).
+Beside them (``sums``) the one-pass with its per-cell sums where the variant does not put them
+(``one_pass_moments(accumulate_on_device=...)``: on the device on a GPU, on the host on a CPU):
+both times side by side and how far the two maps differ.
 
 ``--compare A B``: two finished runs (say a GPU's and a CPU's, same seed and main ray count),
 map by map and cell by cell, with both machines' times side by side. The one-pass traces the same
@@ -13,7 +16,7 @@ rounding wherever the two ray casters (Embree on the CPU, OptiX on the GPU) agre
 RadioMapSolver's maps (Sionna 2.2) differ between two processes even on one machine (Munich,
 every mechanism: max 42 dB, docs/ckm-one-pass.md "Session 22"), so theirs are a looser check.
 
-    python -m benchmarks.ckm_variants --out DIR [--scenes ...] [--ray-counts 1e7 1e8]
+    python -m benchmarks.ckm_variants --out DIR [--scenes ...] [--ray-counts 1e7 1e8] [--repeats 3]
     python -m benchmarks.ckm_variants --compare A B --out DIR
 """
 
@@ -36,6 +39,7 @@ from simart_pipeline.link.beams import dft_codebook
 MECHANISMS = "all"
 BATCH_RAYS = (op.DEFAULT_BATCH_RAYS, 4 * op.DEFAULT_BATCH_RAYS, 8 * op.DEFAULT_BATCH_RAYS)
 LOOP_CELLS, LOOP_BUDGET_S = 8, 8.0
+REPEATS = 1  # timed warm calls per timing at the main ray count (the fastest counts; --repeats)
 SAVED_LAYERS = ("path_gain_db", "toa_s", "rms_delay_spread_s", "best_beam")
 
 
@@ -58,10 +62,12 @@ class SceneRuns:
         self.switches = {k: bool(getattr(cfg.ray_tracing, k)) for k in cs.SWITCHES}
         self.solids = radio_solids(self.radio)
 
-    def one_pass(self, n: int, rx_polarization="V", batch_rays: int = op.DEFAULT_BATCH_RAYS):
+    def one_pass(self, n: int, rx_polarization="V", batch_rays: int | None = None,
+                 accumulate_on_device: bool | None = None):
         return lambda: op.one_pass_moments(
             self.radio, self.tx, self.ori, self.x, self.y, [cs.HEIGHT_M], n, cs.MAX_DEPTH, codebook=self.codebook,
             rx_polarization=rx_polarization, solids=self.solids, batch_rays=batch_rays,
+            accumulate_on_device=accumulate_on_device,
             diffraction_resample_factor=self.cfg.ckm.diffraction_resample_factor, **self.switches)
 
     def radio_map(self, n: int):
@@ -75,7 +81,8 @@ def _layers(m: op.OnePassMoments) -> dict[str, np.ndarray]:
     return {k: np.asarray(layers[k][0]) for k in SAVED_LAYERS if k in layers}
 
 
-def run_scene(name: str, ray_counts, batch_rays, out: Path, log=print) -> dict:
+def run_scene(name: str, ray_counts, batch_rays, out: Path, log=print, other_sums: bool = True,
+              repeats: int = REPEATS) -> dict:
     with tempfile.TemporaryDirectory(prefix="ckm-variants-") as tmp:
         s = SceneRuns(name, Path(tmp))
         main = ray_counts[0]
@@ -83,7 +90,7 @@ def run_scene(name: str, ray_counts, batch_rays, out: Path, log=print) -> dict:
                "seed": int(s.cfg.ray_tracing.seed), "one_pass": {}, "radio_map_solver": {}, "batch_rays": {}}
         maps: dict[str, np.ndarray] = {}
         for n in ray_counts:
-            m, first, warm = cs._warm(s.one_pass(n), 1 if n == main else 0)
+            m, first, warm = cs._warm(s.one_pass(n), repeats if n == main else 0)
             res["one_pass"][str(n)] = {"first_call_s": cs._r3(first), "warm_s": round(warm, 3),
                                        "ray_hits": int(m.count.sum())}
             if n == main:
@@ -91,16 +98,19 @@ def run_scene(name: str, ray_counts, batch_rays, out: Path, log=print) -> dict:
                 maps.update({f"one_pass_v_{k}": v for k, v in _layers(m).items()})
             log(f"{name} one-pass {n:.0e}: {res['one_pass'][str(n)]}", flush=True)
         for b in batch_rays:
-            if b == op.DEFAULT_BATCH_RAYS:
+            if b == op.default_batch_rays(engine.init()):
                 continue
-            _, first, warm = cs._warm(s.one_pass(main, batch_rays=b), 1)
+            _, first, warm = cs._warm(s.one_pass(main, batch_rays=b), repeats)
             res["batch_rays"][str(b)] = {"first_call_s": cs._r3(first), "warm_s": round(warm, 3)}
             log(f"{name} one-pass {main:.0e} batch {b}: {res['batch_rays'][str(b)]}", flush=True)
-        m, first, warm = cs._warm(s.one_pass(main, None), 1)
+        if other_sums:  # the accumulation the variant does not choose, side by side (one_pass_moments)
+            res["sums"] = _other_sums(s, main, res["one_pass"][str(main)]["warm_s"], maps, repeats)
+            log(f"{name} one-pass {main:.0e} sums: {res['sums']}", flush=True)
+        m, first, warm = cs._warm(s.one_pass(main, None), repeats)
         maps["one_pass_unpolarised_whole_cell_db"] = cs.whole_cell_db(m)
         res["one_pass_unpolarised"] = {"rays": main, "first_call_s": cs._r3(first), "warm_s": round(warm, 3)}
         for n in ray_counts:
-            g, first, warm = cs._warm(s.radio_map(n), 1 if n == main else 0)
+            g, first, warm = cs._warm(s.radio_map(n), repeats if n == main else 0)
             res["radio_map_solver"][str(n)] = {"first_call_s": cs._r3(first), "warm_s": round(warm, 3),
                                                "cells_covered": int(np.isfinite(g).sum())}
             if n == main:
@@ -122,6 +132,25 @@ def run_scene(name: str, ray_counts, batch_rays, out: Path, log=print) -> dict:
             res["one_pass_unpolarised"]["warm_s"] / res["radio_map_solver"][str(main)]["warm_s"], 3)
         np.savez_compressed(out / f"maps_{name}.npz", **maps)
     return res
+
+
+def _other_sums(s: SceneRuns, n: int, default_warm_s: float, maps: dict, repeats: int) -> dict:
+    """The one-pass at ``n`` rays with the per-cell sums where the variant does not put them by
+    default (on the device for LLVM, on the host for CUDA): both warm times and how far the two
+    maps differ (float64 summation order and the beam factors' float32 rounding only)."""
+    default_on_device = engine.init().startswith("cuda")
+    m, first, warm = cs._warm(s.one_pass(n, accumulate_on_device=not default_on_device), repeats)
+    other = _layers(m)
+    a, b = maps["one_pass_v_path_gain_db"], other["path_gain_db"]
+    both = np.isfinite(a) & np.isfinite(b)
+    times = {"host_warm_s": round(warm, 3), "device_warm_s": default_warm_s}
+    if not default_on_device:
+        times = {"host_warm_s": default_warm_s, "device_warm_s": round(warm, 3)}
+    return {**times, "other_first_call_s": cs._r3(first),
+            "host_over_device_time": round(times["host_warm_s"] / times["device_warm_s"], 3),
+            "same_cells_with_a_value": bool(np.array_equal(np.isfinite(a), np.isfinite(b))),
+            "path_gain_max_abs_diff_db": float(np.max(np.abs(a[both] - b[both]), initial=0.0)),
+            "best_beam_same_pct": round(100 * float(np.mean(maps["one_pass_v_best_beam"][both] == other["best_beam"][both])), 3)}
 
 
 def _table(results: dict) -> list[str]:
@@ -177,6 +206,10 @@ def main(argv=None) -> int:
     p.add_argument("--ray-counts", nargs="+", type=float, default=[1e7, 1e8],
                    help="the first is the main count (maps, batch sizes, like for like)")
     p.add_argument("--batch-rays", nargs="+", type=float, default=list(BATCH_RAYS))
+    p.add_argument("--repeats", type=int, default=REPEATS,
+                   help="timed warm calls per timing at the main ray count (the fastest is reported)")
+    p.add_argument("--no-other-sums", action="store_true",
+                   help="skip the one-pass with the per-cell sums where the variant does not put them")
     p.add_argument("--compare", type=Path, nargs=2, metavar=("A", "B"),
                    help="compare two finished runs (folders of results.json and maps); no tracing")
     a = p.parse_args(argv)
@@ -189,10 +222,11 @@ def main(argv=None) -> int:
     variant = engine.init()
     print(f"variant: {variant}", flush=True)
     counts = [int(n) for n in a.ray_counts]
-    results = {"variant": variant, "machine": machine(), "ray_counts": counts, "scenes": {}}
+    results = {"variant": variant, "machine": machine(), "ray_counts": counts, "repeats": int(a.repeats), "scenes": {}}
     for name in a.scenes:
         t0 = time.perf_counter()
-        results["scenes"][name] = run_scene(name, counts, [int(b) for b in a.batch_rays], a.out)
+        results["scenes"][name] = run_scene(name, counts, [int(b) for b in a.batch_rays], a.out,
+                                            other_sums=not a.no_other_sums, repeats=max(1, a.repeats))
         results["scenes"][name]["wall_s"] = round(time.perf_counter() - t0, 1)
         (a.out / "results.json").write_text(json.dumps(results, indent=1))  # each scene as it lands
     print("\n".join(_table(results)))

@@ -683,6 +683,9 @@ def test_ckm_variants_two_runs_agree_to_the_bit(tmp_path, monkeypatch):
     assert set(canyon["one_pass"]) == set(canyon["radio_map_solver"]) == {"20000", "30000"}
     assert all(v["warm_s"] > 0 for v in list(canyon["one_pass"].values()) + list(canyon["radio_map_solver"].values()))
     assert set(canyon["batch_rays"]) == {"16384", "32768"} and canyon["pathsolver_per_cell"]["per_call_s"] > 0
+    sums = canyon["sums"]  # the host's and the device's sums side by side: the same map
+    assert sums["same_cells_with_a_value"] and sums["path_gain_max_abs_diff_db"] < 1e-4, sums
+    assert sums["best_beam_same_pct"] == 100.0 and sums["host_warm_s"] > 0 and sums["device_warm_s"] > 0
     assert r["machine"] and r["variant"].endswith("_ad_mono_polarized")
 
     assert cv.main(["--out", str(tmp_path / "c"), "--compare", str(tmp_path / "a"), str(tmp_path / "b")]) == 0

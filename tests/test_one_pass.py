@@ -189,6 +189,10 @@ def test_footprints_spread_a_sparse_ray_set_over_the_cells_it_covers_and_keep_it
     c = np.stack([*np.meshgrid(x, y), np.full((60, 60), 1.5)], -1)
     np.testing.assert_allclose(L["toa_s"][0][far], (np.linalg.norm(c - image, axis=-1) / const.c)[far],
                                rtol=0, atol=1e-12)  # float32 image sources: 0.3 mm
+    # the same footprints with their lanes and weights made on the device (the GPU's path)
+    on_device = op.one_pass_moments(radio, tx, np.zeros(3), x, y, [1.5], n, 1, max_footprint_cells=8,
+                                    accumulate_on_device=True, **kw)
+    _assert_device_sums_equal_host_sums(spread, on_device)
     # the point deposits are the estimator below one cell: spreading leaves the near field alone
     near = np.hypot(X, Y) < 5.0
     np.testing.assert_array_equal(spread.power[0][near], point.power[0][near])
@@ -1100,6 +1104,51 @@ def test_second_pass_replaces_the_diffracted_part_of_undersampled_cells_by_finer
     assert done["pairs"] >= 1 and done["new_samples"] > 0
     for f in fields(CellMoments):
         np.testing.assert_array_equal(getattr(again, f.name), getattr(first, f.name), err_msg=f.name)
+
+
+def _assert_device_sums_equal_host_sums(host, device):
+    """The sums of :class:`op._DeviceAccumulator` against :class:`op._Accumulator`'s over the same
+    rays: hit counts, earliest delays and what the two do not sum to the bit; the power sums to
+    float32 rounding (the footprint weights' normalisation: float64 over a crossing's cells on
+    the host, float32 atomics on the device), the beam powers likewise (factors in float32)."""
+    for f in ("count", "min_delay_s", "tau0_s"):
+        np.testing.assert_array_equal(getattr(device, f), getattr(host, f), err_msg=f)
+    for f in ("power", "power_sq", "los_power", "p_excess_delay_s", "p_excess_delay2_s2", "p_cos", "p_sin",
+              "beam_power"):
+        a, b = getattr(host, f), getattr(device, f)
+        if a is None or b is None:  # no codebook: no beams on either side
+            assert a is None and b is None, f
+            continue
+        np.testing.assert_allclose(b, a, rtol=2e-6, atol=2e-6 * np.abs(a).max(), err_msg=f)
+    np.testing.assert_array_equal(device.masked, host.masked)
+    assert device.second_pass == host.second_pass
+
+
+@pytest.mark.parametrize("sampled", [False, True], ids=["specular", "with diffuse reflection and refraction"])
+def test_sums_on_the_device_equal_the_host_sums(tmp_path, sampled):
+    """``accumulate_on_device`` (the GPU's path: scatter-adds into per-cell arrays, the beam
+    factors per deposit, the footprints' lanes by prefix sums) on the LLVM device gives the host
+    accumulator's moments: two heights, several batches, a 2 x 2 codebook, reflections through
+    footprints, and with diffuse reflection and refraction the drawn interactions."""
+    args, cb = _ground_and_wall_run(tmp_path)
+    kw = dict(codebook=cb, batch_rays=30_011, diffuse_reflection=sampled, refraction=sampled)
+    host = op.one_pass_moments(*args, accumulate_on_device=False, **kw)
+    device = op.one_pass_moments(*args, accumulate_on_device=True, **kw)
+    assert (host.beam_power > 0).sum() > 100 and host.count.sum() > 50_000
+    _assert_device_sums_equal_host_sums(host, device)
+
+
+def test_sums_on_the_device_with_diffraction_and_its_second_pass(tmp_path):
+    """The device sums with diffraction, its lit faces collected on the device, and the second
+    pass on undersampled cells (which reads the first pass's sums and replaces their part)."""
+    radio = RadioScene.from_config(_box_and_ground_scene(tmp_path, True), _cfg())
+    x, y = _axes(0.0, 20, 0.0, 20, 2.0)
+    kw = dict(diffraction=True, codebook=np.ones((1, 1), complex), min_hits_for_power=50,
+              diffraction_resample_factor=4)
+    host, device = (op.one_pass_moments(radio, np.array([0.0, 0.0, 10.0]), np.zeros(3), x, y, [1.5], 200_000, 2,
+                                        accumulate_on_device=on, **kw) for on in (False, True))
+    assert host.second_pass["new_samples"] > 0 and host.second_pass["undersampled_cells"] > 0
+    _assert_device_sums_equal_host_sums(host, device)
 
 
 @pytest.mark.parametrize("resample", [1, 4], ids=["one pass", "with the second pass"])

@@ -96,15 +96,20 @@ from simart_pipeline.link.beams import rotation_local_to_world
 from simart_pipeline.scene.solids import Solids
 from simart_pipeline.vocabulary import SPEED_OF_LIGHT_MPS
 
-__all__ = ["OnePassMoments", "adaptive_one_pass_moments", "beam_factors", "one_pass_moments", "outdoor_fraction",
-           "undersampled_fraction"]
+__all__ = ["OnePassMoments", "adaptive_one_pass_moments", "beam_factors", "default_batch_rays", "one_pass_moments",
+           "outdoor_fraction", "undersampled_fraction"]
 
 DEFAULT_BATCH_RAYS = 1 << 20  # about 0.5 GB of ray state on the LLVM backend
+# on a GPU each batch costs Python a fixed time to trace its kernels: 4M rays (about 2 GB of ray
+# state) took an H200 0.33 s on the canyon at 1e7 rays against 0.44-0.53 s in 1M batches (8M: no
+# faster; Munich 2.8 against 1.9 s), docs/ckm-one-pass.md "Session 24"
+DEFAULT_BATCH_RAYS_GPU = 1 << 22
 DEFAULT_MIN_HITS_FOR_SPREAD = 10
 DEFAULT_MIN_HITS_FOR_POWER = 5  # config.Ckm.min_hits_for_power's default; the reasoning is there
 DEFAULT_MIN_OUTDOOR_FRACTION = 0.5
 DEFAULT_MAX_FOOTPRINT_CELLS = 8.0
 BEAM_CHUNK = 4096  # directions per step of beam_factors (3x faster than all at once on 2e5)
+_INF_BITS = 0x7F800000  # float32 +inf as uint32
 MAX_PENDING_GROUPS = 1 << 22  # (cell, direction) groups whose beams wait for one evaluation: 96 MB
 
 
@@ -256,6 +261,115 @@ class _Accumulator:
             power_sq=m.power_sq.reshape(s))
 
 
+class _DeviceAccumulator(_Accumulator):
+    """The per-cell sums kept on the Dr.Jit device, for the ``cuda`` variant: a GPU traces a
+    batch in milliseconds, and copying its deposits to numpy and summing them there took most of
+    a call (docs/ckm-one-pass.md, "Session 22"). Each deposit set is added with
+    ``dr.scatter_reduce`` into float64 per-cell arrays (``min`` for the earliest arrival) and its
+    beam powers with it: the factor of the deposit's quantised departure direction (the same key
+    as :meth:`_Accumulator._add_beams`, so the same directions), evaluated per deposit in float32
+    on the device. Only the finished sums come back (:meth:`summed`). The same moments as
+    :class:`_Accumulator` up to float64 summation order and the beam factors' float32 rounding
+    (about 1e-6 relative); on a GPU the atomics' order varies, so two runs differ in the last bits
+    (the host accumulator, bitwise repeatable, stays the CPU's)."""
+
+    def __init__(self, grid: Grid, tx_position_m, codebook, ant_positions_m, tx_rotation, wavelength_m):
+        import drjit as dr
+        import mitsuba as mi
+
+        super().__init__(grid, tx_position_m, codebook, ant_positions_m, tx_rotation, wavelength_m)
+        self.dr, self.mi = dr, mi
+        n = len(self.m.power)
+        self.d_sums = {f: dr.zeros(mi.Float64, n) for f in ("power", "power_sq", "los_power", "p_excess_delay_s",
+                                                             "p_excess_delay2_s2")}
+        self.d_angles = {f: dr.zeros(mi.Float64, 4 * n) for f in ("p_cos", "p_sin")}
+        self.d_count = dr.zeros(mi.UInt32, n)
+        # the earliest arrival: a min over float32 distances (m, tau = dist / c0) as their bits, an
+        # integer min (non-negative floats order as their bit patterns; no float atomic min needed)
+        self.d_min_dist_bits = dr.full(mi.UInt32, _INF_BITS, n)
+        self.d_tau0 = mi.Float64(self.m.tau0_s)
+        self.num_beams = 0 if codebook is None else codebook.shape[0]
+        if self.num_beams:
+            self.d_beams = dr.zeros(mi.Float64, n * self.num_beams)
+            self.kpos = np.asarray(ant_positions_m, np.float64) * self.k  # rad/m x m: phase per unit direction
+            w = np.asarray(codebook, np.complex64).ravel()  # [beam, antenna], row-major
+            self.d_codebook = (mi.Float(w.real.copy()), mi.Float(w.imag.copy()))
+
+    def __call__(self, dep: dict, line_of_sight: bool) -> None:
+        dr, mi = self.dr, self.mi
+        add = dr.ReduceOp.Add
+        cell = dep["cell"]
+        if "stretch" in dep:  # the second pass's bookkeeping stays on the host (few keys)
+            keys = (mi.UInt64(cell) << 32) | mi.UInt64(dep["stretch"])
+            self.stretch_keys.append(pd.unique(keys.numpy().astype(np.uint64)))
+        p = mi.Float64(dep["power"])
+        s = self.d_sums
+        dr.scatter_reduce(add, s["power"], p, cell)
+        dr.scatter_reduce(add, s["power_sq"], p * p, cell)
+        if line_of_sight:
+            dr.scatter_reduce(add, s["los_power"], p, cell)
+        dr.scatter_reduce(add, self.d_count, mi.UInt32(1), cell)
+        dr.scatter_reduce(dr.ReduceOp.Min, self.d_min_dist_bits, dr.reinterpret_array(mi.UInt32, dep["dist"]), cell)
+        dtau = mi.Float64(dep["dist"]) / SPEED_OF_LIGHT_MPS - dr.gather(mi.Float64, self.d_tau0, cell)
+        p_dtau = p * dtau
+        dr.scatter_reduce(add, s["p_excess_delay_s"], p_dtau, cell)
+        dr.scatter_reduce(add, s["p_excess_delay2_s2"], p_dtau * dtau, cell)
+        for k in range(4):
+            dr.scatter_reduce(add, self.d_angles["p_cos"], p * mi.Float64(dep[f"cos{k}"]), cell * 4 + k)
+            dr.scatter_reduce(add, self.d_angles["p_sin"], p * mi.Float64(dep[f"sin{k}"]), cell * 4 + k)
+        if self.num_beams and not line_of_sight:  # line of sight: in moments(), as on the host
+            self._add_beam_powers(cell, p, dep["dkey"])
+        dr.eval()  # the scatters, now: the deposits' memory is released with this set
+
+    def _add_beam_powers(self, cell, p, dkey) -> None:
+        """Adds ``p |w_b^T v(u)|^2`` per deposit to its cell's beam ``b``, every beam: ``u`` the
+        direction of ``dkey`` (decoded as :meth:`_Accumulator._add_beams` does), ``v_n = exp(+j k
+        p_n . u)`` in float32. A symbolic loop over the beams, the antennas unrolled in it: the
+        fully unrolled form (beams x antennas complex products) took Python 13 ms a set to trace."""
+        dr, mi = self.dr, self.mi
+        mask = (1 << Q_BITS) - 1
+        u = [mi.Float(mi.Int32(mi.UInt32((dkey >> (k * Q_BITS)) & mask)) - Q_OFFSET) * DIRECTION_QUANTUM
+             for k in (2, 1, 0)]
+        inv = dr.rsqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+        u = [c * inv for c in u]
+        v = [dr.sincos(u[0] * float(q[0]) + u[1] * float(q[1]) + u[2] * float(q[2])) for q in self.kpos]
+        num_beams, num_ant = self.num_beams, len(v)
+        w_re, w_im = self.d_codebook
+        first = cell * num_beams
+
+        def body(b):
+            y_re, y_im = mi.Float(0.0), mi.Float(0.0)
+            for n, (v_im, v_re) in enumerate(v):
+                a, c = (dr.gather(mi.Float, w, b * num_ant + n) for w in (w_re, w_im))
+                y_re = dr.fma(v_re, a, dr.fma(v_im, -c, y_re))
+                y_im = dr.fma(v_re, c, dr.fma(v_im, a, y_im))
+            dr.scatter_reduce(dr.ReduceOp.Add, self.d_beams, p * mi.Float64(y_re * y_re + y_im * y_im), first + b)
+            return (b + 1,)
+
+        dr.while_loop(state=(dr.zeros(mi.UInt32, dr.width(p)),), cond=lambda b: b < num_beams, body=body)
+
+    def summed(self) -> CellMoments:
+        """The device sums added into the host's (then zeroed on the device), as
+        :meth:`_Accumulator.summed`."""
+        dr, mi = self.dr, self.mi
+        m = self.m
+        for f, a in self.d_sums.items():
+            getattr(m, f)[:] += a.numpy()
+            self.d_sums[f] = dr.zeros(mi.Float64, len(m.power))
+        for f, a in self.d_angles.items():
+            getattr(m, f)[:] += a.numpy().reshape(-1, 4)
+            self.d_angles[f] = dr.zeros(mi.Float64, 4 * len(m.power))
+        m.count += self.d_count.numpy().astype(np.int64)
+        self.d_count = dr.zeros(mi.UInt32, len(m.power))
+        dist = self.d_min_dist_bits.numpy().astype(np.uint32).view(np.float32)
+        m.min_delay_s = np.minimum(m.min_delay_s, dist.astype(np.float64) / SPEED_OF_LIGHT_MPS)
+        self.d_min_dist_bits = dr.full(mi.UInt32, _INF_BITS, len(m.power))
+        if self.num_beams:
+            m.beam_power += self.d_beams.numpy().reshape(-1, self.num_beams)
+            self.d_beams = dr.zeros(mi.Float64, len(m.power) * self.num_beams)
+        return super().summed()
+
+
 class _InOrderWorker:
     """Runs the numpy accumulation on one worker thread, in submission order (so the sums are the
     same as in line), while the caller traces the next segment: numpy and the Dr.Jit kernels
@@ -281,6 +395,14 @@ class _InOrderWorker:
         self.pool.shutdown(wait=True)
         for fut in self.futures:
             fut.result()  # re-raise the first accumulation error, if any
+
+
+def _sink(acc: _Accumulator):
+    """The tracer's sink into ``acc``: the host sums on a worker thread beside the tracer
+    (:class:`_InOrderWorker`); the device sums in line (Dr.Jit queues their kernels itself)."""
+    import contextlib
+
+    return contextlib.nullcontext(acc) if isinstance(acc, _DeviceAccumulator) else _InOrderWorker(acc)
 
 
 def _compiled(fn):
@@ -361,7 +483,7 @@ def beam_factors(codebook: np.ndarray, ant_positions_m: np.ndarray, directions: 
 def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, y_m: np.ndarray,
                      heights_m: np.ndarray, num_rays: int, max_depth: int,
                      codebook: np.ndarray | None = None, tx_ant_positions_m: np.ndarray | None = None,
-                     batch_rays: int = DEFAULT_BATCH_RAYS, min_hits_for_spread: int = DEFAULT_MIN_HITS_FOR_SPREAD,
+                     batch_rays: int | None = None, min_hits_for_spread: int = DEFAULT_MIN_HITS_FOR_SPREAD,
                      *, min_hits_for_power: int = DEFAULT_MIN_HITS_FOR_POWER, min_effective_hits_for_power: float = 1.0,
                      cell_size_m: float | None = None, indoor: np.ndarray | None = None,
                      min_outdoor_fraction: float = DEFAULT_MIN_OUTDOOR_FRACTION,
@@ -370,7 +492,8 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                      diffuse_reflection: bool = False, diffraction_samples: int | None = None,
                      max_footprint_cells: float = DEFAULT_MAX_FOOTPRINT_CELLS,
                      solids: Solids | None = None, diffraction_with_reflections: bool = True,
-                     diffraction_resample_factor: int = 1, diffuse_last_only: bool = False) -> OnePassMoments:
+                     diffraction_resample_factor: int = 1, diffuse_last_only: bool = False,
+                     accumulate_on_device: bool | None = None) -> OnePassMoments:
     """Per-cell power moments of one transmitter over a grid, from one shoot-and-bounce pass.
 
     :param radio: :class:`simart_pipeline.radio.tracer.RadioScene` (mesh, materials of its
@@ -384,7 +507,8 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
     :param codebook: ``[num_beams, num_tx_ant]`` complex unit-norm precoders, or None (no beams);
         ``tx_ant_positions_m``: ``[num_tx_ant, 3]`` m in the device frame (default: the scene's
         ``tx_array`` positions)
-    :param batch_rays: rays traced at once (memory bound; the result does not depend on it)
+    :param batch_rays: rays traced at once (memory bound; the result does not depend on it);
+        None: :func:`default_batch_rays`
     :param min_hits_for_spread: hits a cell needs for spreads and mean angles
         (:meth:`OnePassMoments.layers`); ``min_hits_for_power``: for path gain, ToA, LoS and beams;
         ``min_effective_hits_for_power``: the effective count (Kish, ``(sum p)^2 / sum p^2``)
@@ -426,18 +550,24 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         diffracted rays reached it are sampled again with this many times their samples, and in
         those cells their first-pass part is replaced by the finer one
         (:func:`_resample_undersampled`); ``second_pass`` of the result says what it did
+    :param accumulate_on_device: sum the deposits on the Dr.Jit device (:class:`_DeviceAccumulator`)
+        instead of on the host with numpy (:class:`_Accumulator`); None: on the device where the
+        variant is ``cuda`` (a GPU), on the host otherwise (bitwise repeatable; on two CPU cores
+        the host sums run beside the tracer's kernels)
     :return: :class:`OnePassMoments` of grid shape ``[num_heights, ny, nx]``
     """
     from simart_pipeline import engine
 
     if rx_polarization not in (None, "V", "H"):
         raise ValueError(f"rx_polarization must be None, 'V' or 'H', got {rx_polarization!r}")
+    variant = engine.init()
+    batch_rays = default_batch_rays(variant) if batch_rays is None else batch_rays
     if not 1 <= int(num_rays) < 2**32 or int(batch_rays) < 1:
         raise ValueError(f"num_rays must lie in 1 .. 2**32 - 1 and batch_rays be >= 1, got {num_rays} "
                          f"and {batch_rays}")
     if int(max_depth) < 0:
         raise ValueError(f"max_depth must be >= 0, got {max_depth}")
-    engine.init()
+    on_device = variant.startswith("cuda") if accumulate_on_device is None else bool(accumulate_on_device)
     grid = grid_from_centres(x_m, y_m, heights_m, cell_size_m)
     rot = rotation_local_to_world(np.asarray(tx_orientation_rad, np.float64))
     if codebook is not None:
@@ -458,7 +588,9 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                      with_beams=codebook is not None, specular=specular_reflection, refraction=refraction,
                      diffuse=diffuse_reflection, max_footprint_cells=max_footprint_cells,
                      outdoor_fraction=frac, diffuse_last_only=diffuse_last_only)
-    acc = _Accumulator(grid, tx_position_m, codebook, ant, rot, radio.wavelength_m)
+    tracer.device_deposits = on_device
+    accumulator = _DeviceAccumulator if on_device else _Accumulator
+    acc = accumulator(grid, tx_position_m, codebook, ant, rot, radio.wavelength_m)
     with_diffraction = diffraction and int(max_depth) > 0
     reflections_before = 1 if specular_reflection and depth >= 2 and diffraction_with_reflections else 0
     if with_diffraction:  # the lattice rays' hits name the lit wedges: collected as they are traced
@@ -474,7 +606,7 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
     if resample < 1:
         raise ValueError(f"diffraction_resample_factor must be >= 1, got {diffraction_resample_factor}")
     wedges = None
-    with _InOrderWorker(acc) as sink:
+    with _sink(acc) as sink:
         for start in range(0, int(num_rays), int(batch_rays)):
             tracer.trace(start, min(start + int(batch_rays), int(num_rays)), sink)
         if with_diffraction:  # Sionna counts a diffraction as one interaction of max_depth
@@ -494,7 +626,7 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         second_pass = _resample_undersampled(
             acc, wedges, resample, masked.ravel(), frac.ravel(), int(min_hits_for_power),
             float(min_effective_hits_for_power), SAMPLES_PER_BATCH_RAY * int(batch_rays),
-            lambda: _Accumulator(grid, tx_position_m, codebook, ant, rot, radio.wavelength_m))
+            lambda: accumulator(grid, tx_position_m, codebook, ant, rot, radio.wavelength_m))
     m = acc.moments()
     scale = np.where(masked, 0.0, 1.0 / np.maximum(frac, 1e-12))
     for f in ("power", "los_power", "p_excess_delay_s", "p_excess_delay2_s2"):
@@ -513,12 +645,19 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                           num_rays=int(num_rays), second_pass=second_pass)
 
 
+def default_batch_rays(variant: str) -> int:
+    """Rays a batch of :func:`one_pass_moments` traces by default on Mitsuba ``variant``:
+    :data:`DEFAULT_BATCH_RAYS_GPU` on ``cuda``, :data:`DEFAULT_BATCH_RAYS` on LLVM."""
+    return DEFAULT_BATCH_RAYS_GPU if variant.startswith("cuda") else DEFAULT_BATCH_RAYS
+
+
 def _undersampled_cells(acc: _Accumulator, masked, frac, min_hits: int, min_effective: float) -> np.ndarray:
     """Flat cells outside the mask with a ray hit but too few for a path gain (the layers' rule,
     :func:`too_few_for_power`, on the accumulator's sums: the outdoor share scales power and
     power squared alike, the effective count not)."""
-    few = too_few_for_power(acc.m, min_hits, min_effective)
-    return np.flatnonzero((acc.m.count >= 1) & few & ~masked & (frac > 0))
+    m = acc.summed()  # the device's sums come to the host here
+    few = too_few_for_power(m, min_hits, min_effective)
+    return np.flatnonzero((m.count >= 1) & few & ~masked & (frac > 0))
 
 
 def _resample_undersampled(acc: _Accumulator, wedges, factor: int, masked, frac, min_hits: int,
@@ -541,7 +680,7 @@ def _resample_undersampled(acc: _Accumulator, wedges, factor: int, masked, frac,
     if not len(stretches):
         return out
     replay, finer = new_accumulator(), new_accumulator()
-    with _InOrderWorker(replay) as replay_sink, _InOrderWorker(finer) as finer_sink:
+    with _sink(replay) as replay_sink, _sink(finer) as finer_sink:
         out["new_samples"] = wedges.resample(stretches, factor, batch, replay_sink, finer_sink)
     acc.replace(cells, replay.summed(), finer.summed())
     out["still_undersampled"] = int(len(_undersampled_cells(acc, masked, frac, min_hits, min_effective)))

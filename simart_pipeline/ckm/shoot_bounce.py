@@ -448,7 +448,7 @@ class Tracer:
         # PathSolver's diffuse model (one_pass_moments' diffuse_last_only): nothing after a diffuse
         # reflection, no diffuse reflection of a diffracted ray
         self.diffuse_last_only = bool(diffuse_last_only)
-        self.lit_faces: list | None = None  # see collect_lit
+        self._lit_face_mask = None  # [num faces] bool, see collect_lit
         self.lit_pairs: list | None = None
         # a split or drawn interaction per hit where diffuse reflection or refraction is on; specular
         # reflection alone keeps the deterministic _reflect
@@ -460,6 +460,9 @@ class Tracer:
         # p = |E|^2 * solid angle / |cos| * (lambda / 4 pi)^2 / cell area (RadioMapSolver's estimator)
         self.tube_c = opaque(4 * np.pi / num_rays)  # a lattice ray's tube: 4 pi / N sr
         self.max_footprint_cells = float(max_footprint_cells)
+        # True: deposits handed to the sink as evaluated Dr.Jit arrays (one_pass._DeviceAccumulator),
+        # False: as numpy arrays
+        self.device_deposits = False
         # a spread crossing's share of a cell is the part of the cell outside buildings (the
         # solver divides each cell's sums by that part): [num_heights, ny, nx], None: all outside
         self.outdoor = None if outdoor_fraction is None else mi.Float(
@@ -598,7 +601,7 @@ class Tracer:
             out["stretch"] = take["stretch"]
         out.update(direction_terms(d_c, d_dep, self.rot, self.with_beams))
         dr.eval(*out.values())
-        return {k: v.numpy() for k, v in out.items()}
+        return out if self.device_deposits else {k: v.numpy() for k, v in out.items()}
 
     def _spread(self, px, py, fp, cell_offset):
         """The crossings repeated once per grid cell their footprint (:meth:`_footprint`) covers,
@@ -613,13 +616,19 @@ class Tracer:
         ncol = dr.floor(px + fp["hx"]) - c0 + 1.0
         n = mi.UInt32(ncol * (dr.floor(py + fp["hy"]) - r0 + 1.0))
         dr.eval(n)
-        n_np = n.numpy().astype(np.int64)
-        if not (n_np > 1).any():
-            return None, c0, r0, None
-        # lane k of the output is cell `local` of crossing `parent` (numpy: a cumulative index)
-        parent_np = np.repeat(np.arange(len(n_np), dtype=np.uint32), n_np)
-        local_np = np.arange(len(parent_np), dtype=np.int64) - np.repeat(np.cumsum(n_np) - n_np, n_np)
-        parent, local = mi.UInt32(parent_np), mi.Float(local_np.astype(np.float32))
+        # lane k of the output is cell `local` of crossing `parent`: a cumulative index
+        if self.device_deposits:  # on the device: one number comes back, not the index
+            lanes = _cumulative_lanes(dr, mi, n)
+            if lanes is None:
+                return None, c0, r0, None
+            parent, local = lanes
+        else:  # numpy, in lane order: the same weights in any batch and any run
+            n_np = n.numpy().astype(np.int64)
+            if not (n_np > 1).any():
+                return None, c0, r0, None
+            parent_np = np.repeat(np.arange(len(n_np), dtype=np.uint32), n_np)
+            local_np = np.arange(len(parent_np), dtype=np.int64) - np.repeat(np.cumsum(n_np) - n_np, n_np)
+            parent, local = mi.UInt32(parent_np), mi.Float(local_np.astype(np.float32))
         gat = lambda v: dr.gather(type(v), v, parent)  # noqa: E731
         nc = gat(ncol)
         r_off = dr.floor((local + 0.5) / nc)  # float: exact for these small integers, no integer division
@@ -631,15 +640,20 @@ class Tracer:
         w = dr.maximum(1.0 - dr.abs(du) / gat(fp["a_u"]), 0.0) * dr.maximum(1.0 - dr.abs(dv) / gat(fp["a_v"]), 0.0)
         w = dr.select(gat(wide), w, 1.0)
         dr.eval(w)
-        w_np = w.numpy().astype(np.float64)
-        total = np.bincount(parent_np, w_np, len(n_np))  # in lane order: deterministic
-        w_np = (w_np / total[parent_np]).astype(np.float32)
-        dr.eval(col, row)
-        keep = (col >= 0) & (col < g["nx"]) & (row >= 0) & (row < g["ny"]) & (mi.Float(w_np) > 0)
+        if self.device_deposits:  # float32 atomics: the last bits vary with their order
+            total = dr.zeros(mi.Float, dr.width(n))
+            dr.scatter_reduce(dr.ReduceOp.Add, total, w, parent)
+            w = w / dr.gather(mi.Float, total, parent)
+        else:
+            w_np = w.numpy().astype(np.float64)
+            total = np.bincount(parent_np, w_np, len(n_np))  # in lane order: deterministic
+            w = mi.Float((w_np / total[parent_np]).astype(np.float32))
+        dr.eval(col, row, w)
+        keep = (col >= 0) & (col < g["nx"]) & (row >= 0) & (row < g["ny"]) & (w > 0)
         sel = dr.compress(keep)
         if dr.width(sel) == 0:
             return None
-        col, row, w = (dr.gather(mi.Float, a, sel) for a in (col, row, mi.Float(w_np)))
+        col, row, w = (dr.gather(mi.Float, a, sel) for a in (col, row, w))
         if self.outdoor is not None:
             # the part of a footprint that falls inside a building never reaches the plane: a cell
             # gets its outdoor part of the kernel's share (the density after the solver's division
@@ -653,19 +667,27 @@ class Tracer:
         and, with ``pairs`` and specular reflection alone (a drawn interaction is no mirror), the
         (first, second) face pairs of their specular reflections (``lit_pairs``): the lit wedges of
         :class:`simart_pipeline.ckm.diffraction.DiffractionSampler`, without casting the rays again."""
-        self.lit_faces = []
+        self._lit_face_mask = self.dr.zeros(self.mi.Bool, len(self.faces.normals))
         self.lit_pairs = [] if pairs and not self.sampled else None
+
+    @property
+    def lit_faces(self) -> list[np.ndarray] | None:
+        """The lit faces collected since :meth:`collect_lit` (one sorted array in a list, as
+        ``lit_pairs`` holds its keys), None where nothing is collected."""
+        if self._lit_face_mask is None:
+            return None
+        return [np.flatnonzero(self._lit_face_mask.numpy()).astype(np.uint64)]
 
     def _record_lit(self, depth: int, ids, prim, hit, prev):
         """Collect the lit faces (depth 0) and, after a specular reflection, the (first, second)
         face pairs (depth 1) of the lattice rays, as 64-bit keys ``first << 32 | second``;
         returns what depth 1 needs of depth 0 (its faces and hits)."""
         dr, mi = self.dr, self.mi
-        if self.lit_faces is None:
+        if self._lit_face_mask is None:
             return None
         face, _ = self.face_at(ids, prim, hit)
-        if depth == 0:
-            self.lit_faces.append(_unique_keys(dr, face, hit))
+        if depth == 0:  # a mask on the device: nothing comes back per batch
+            dr.scatter(self._lit_face_mask, True, face, hit)
             return face, hit
         if self.lit_pairs is not None and prev is not None:  # None: sampled interactions
             # _reflect keeps the hit lanes in order: the reflected ray j is lattice ray compress(hit)[j]
@@ -901,6 +923,23 @@ class Tracer:
                 st = self._reflect(st, t_hit, ids, prim, hit)
             if st is None:
                 break
+
+
+def _cumulative_lanes(dr, mi, n):
+    """For counts ``n`` (UInt32, each >= 1): the lanes of their concatenation as (the count each
+    lane belongs to, the lane's index within it), on the device (an exclusive prefix sum, its
+    starts marked and summed again); None where every count is 1. One number comes back to the
+    host, the total, which sizes the output."""
+    total = int(dr.sum(n)[0])
+    if total == dr.width(n):
+        return None
+    start = dr.prefix_sum(n)
+    mark = dr.zeros(mi.UInt32, total)
+    dr.scatter(mark, mi.UInt32(1), start)
+    parent = dr.prefix_sum(mark) + mark - 1  # inclusive sum of the marks, from 0
+    local = mi.Float(dr.arange(mi.UInt32, total) - dr.gather(mi.UInt32, start, parent))
+    dr.eval(parent, local)
+    return parent, local
 
 
 def _compact(dr, state: dict, active) -> dict | None:
