@@ -150,7 +150,8 @@ def _other_sums(s: SceneRuns, n: int, default_warm_s: float, maps: dict, repeats
             "host_over_device_time": round(times["host_warm_s"] / times["device_warm_s"], 3),
             "same_cells_with_a_value": bool(np.array_equal(np.isfinite(a), np.isfinite(b))),
             "path_gain_max_abs_diff_db": float(np.max(np.abs(a[both] - b[both]), initial=0.0)),
-            "best_beam_same_pct": round(100 * float(np.mean(maps["one_pass_v_best_beam"][both] == other["best_beam"][both])), 3)}
+            "best_beam_same_pct": round(100 * float(np.mean(
+                maps["one_pass_v_best_beam"][both] == other["best_beam"][both])), 3)}
 
 
 def _table(results: dict) -> list[str]:

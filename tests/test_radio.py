@@ -158,6 +158,10 @@ def test_batches_and_memory_budget_do_not_change_paths(tiny_built):
     for f in ("valid", "tau_s", "interaction"):
         np.testing.assert_array_equal(getattr(one, f)[..., :two.tau_s.shape[-1]], getattr(two, f)[..., :one.tau_s.shape[-1]])
     np.testing.assert_allclose(one.a, two.a, rtol=1e-6, atol=0)
+    # each call's paths are cut to its most valid paths as they come (memory): no path slot is
+    # invalid for every receiver and transmitter
+    for p in (one, two):
+        assert p.valid.sum(-1).max() == p.tau_s.shape[-1] == p.a.shape[-1] == p.interaction.shape[-1]
     # The memory budget caps the receivers per call: 48 B x depth x samples x receivers.
     rt = cfg.ray_tracing.model_copy(update={"max_solver_memory_gib": 1.0, "samples_per_src": 1_000_000,
                                             "max_depth": 4})

@@ -337,25 +337,38 @@ class RadioScene:
             for start in range(0, num_rx, step):
                 idx = list(range(start, min(start + step, num_rx)))
                 cap = self._learned_cap(len(idx), limit, deterministic)
-                chunks += self._solve(idx, cap, num_tx, rx_positions, rx_velocities, rx_orientations_rad,
-                                      deterministic, limit)
+                # each call's paths cleaned and cut to its most valid paths as it comes: only
+                # those stay in memory (with diffuse reflection a call's arrays are padded to
+                # tens of thousands of candidates; every call's at once ran a 24 GB machine out)
+                chunks += [self._cleaned(c, with_vertices) for c in self._solve(
+                    idx, cap, num_tx, rx_positions, rx_velocities, rx_orientations_rad, deterministic, limit)]
         finally:
             for i in range(num_tx):
                 self.scene.remove(f"tx{i}")
             for name in list(self.scene.receivers):
                 self.scene.remove(name)
-        d = _concat(chunks)
+        d = _concat(chunks) if len(chunks) > 1 else chunks[0]
+        names = {f.name for f in fields(TracedPaths)}
+        return TracedPaths(**{k: v for k, v in d.items() if k in names})
+
+    def _cleaned(self, d: dict[str, np.ndarray], with_vertices: bool) -> dict[str, np.ndarray]:
+        """One call's paths: actors named, non-finite and duplicate paths dropped, sorted
+        (:func:`_ordered`), and cut to the most valid paths of any of its (receiver, transmitter)
+        pairs. Every step is per pair, so calls cleaned apart and then joined give what the
+        joined calls cleaned at once would (up to the invalid padding at the end)."""
         obj = d["objects"].astype(np.int64)
         table = np.append(self._object_actor, NO_ACTOR).astype(np.int16)  # last: any other id
         d["actor"] = table[np.where((obj >= 0) & (obj < len(self._object_actor)), obj, len(table) - 1)]
         d, dropped = drop_non_finite_paths(d)
         self.non_finite_paths += dropped
         # Sorted first so that the path kept of two duplicates is the earlier one, whatever order
-        # the solver returned them in.
-        d = drop_duplicate_paths(_ordered(d))
+        # the solver returned them in; sorted again after (valid first)
+        d = _ordered(drop_duplicate_paths(_ordered(d)))
         if not with_vertices:
             d.pop("vertices_m")
-        return _sort(d)
+        n = int(d["valid"].sum(axis=-1).max(initial=0))  # the valid paths lead every pair's row
+        # copies, not views: a view would keep the padded arrays alive
+        return {k: np.ascontiguousarray(v[..., :n, :] if k == "vertices_m" else v[..., :n]) for k, v in d.items()}
 
     def _learned_cap(self, num_rx: int, limit: int, deterministic: bool = True) -> int:
         """The candidate cap of a call of ``num_rx`` receivers: the configured ``limit`` until a
@@ -528,9 +541,12 @@ def _to_numpy(paths, num_tx: int, num_rx: int, max_depth: int, rx_ant: int,
     # Explicit shapes: a call with no path has zero-size arrays.
     num_paths = np.array(paths.tau).shape[-1]
     shape = (num_rx, num_tx, num_paths)
-    a = np.array(paths.a[0]).astype(np.float64) + 1j * np.array(paths.a[1])
+    re = np.array(paths.a[0])
+    a = np.empty(re.shape, np.complex64)  # made in place: no complex128 temporaries
+    a.real, a.imag = re, np.array(paths.a[1])
+    del re
     out = {
-        "a": a.astype(np.complex64).reshape(num_rx, rx_ant, num_tx, tx_ant, num_paths),
+        "a": a.reshape(num_rx, rx_ant, num_tx, tx_ant, num_paths),
         "tau_s": np.array(paths.tau).astype(np.float64).reshape(shape),
         "theta_t": np.array(paths.theta_t).reshape(shape),
         "phi_t": np.array(paths.phi_t).reshape(shape),
@@ -571,12 +587,6 @@ def _concat(chunks: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
             d[key] = np.pad(v, pad, constant_values=_FILL.get(key, 0))
         padded.append(d)
     return {key: np.concatenate([c[key] for c in padded], axis=0) for key in padded[0]}
-
-
-def _sort(d: dict[str, np.ndarray]) -> TracedPaths:
-    out = _ordered(d)
-    names = {f.name for f in fields(TracedPaths)}
-    return TracedPaths(**{k: v for k, v in out.items() if k in names})
 
 
 def _ordered(d: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
