@@ -261,6 +261,33 @@ def test_the_config_asks_for_the_second_pass_and_the_tile_says_what_it_did(tiny_
     assert (twice["enough_hits"].values & few).sum() > 0  # measured: 60 of 76
 
 
+def test_the_config_sets_the_fast_modes_ray_batch_and_the_layers_do_not_depend_on_it(tiny_built, tiny_scene,
+                                                                                     monkeypatch):
+    """ckm.batch_rays (memory) reaches the one-pass solver through the tile (null: the solver's
+    own default), and the tile's layers are those of one batch: hit counts and masks equal, values
+    to float64 summation order."""
+    from simart_pipeline.ckm import one_pass as op
+
+    _, geom, _, out = tiny_built
+    seen = []
+    solve = op.one_pass_moments
+    monkeypatch.setattr(op, "one_pass_moments", lambda *a, **k: seen.append(k["batch_rays"]) or solve(*a, **k))
+
+    def fast(batch):
+        return _cfg(tiny_scene, lambda raw: raw["ckm"].update(tiles=[1, 1], cell_size_m=2.0, mode="fast",
+                                                              num_rays=50_000, batch_rays=batch))
+
+    radio = RadioScene.from_config(meshes.radio_scene_file(out), fast(None))
+    one, many = tile_layers(radio, fast(None), geom, "r0c0"), tile_layers(radio, fast(7_001), geom, "r0c0")
+    assert set(seen) == {None, 7_001}
+    for name in ("has_path", "enough_hits", "count"):
+        np.testing.assert_array_equal(many[name].values, one[name].values, err_msg=name)
+    for name in ("path_gain_db", "rms_delay_spread_s", "toa_s"):
+        np.testing.assert_allclose(many[name].values, one[name].values, rtol=1e-9, atol=0, err_msg=name)
+    with pytest.raises(ValueError, match="batch_rays"):
+        _cfg(tiny_scene, lambda raw: raw["ckm"].update(batch_rays=10))
+
+
 def test_fast_mode_writes_the_same_layers_and_agrees_with_the_reference(tiny_built, tiny_scene):
     """ckm.mode: fast (one shoot-and-bounce pass) gives the same layers, names, units and
     definitions as the reference mode, and the same path gain to within ray-tube sampling."""

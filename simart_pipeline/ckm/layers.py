@@ -141,7 +141,7 @@ def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, t
             radio, np.asarray(b.position_m, np.float64), np.deg2rad(np.asarray(b.orientation_deg, np.float64)),
             grid.x, grid.y, grid.heights, num_rays=cfg.ckm.num_rays, max_rays=cfg.ckm.adaptive_max_rays,
             max_undersampled_fraction=cfg.ckm.max_undersampled_fraction, max_depth=cfg.ray_tracing.max_depth,
-            codebook=weights, tx_ant_positions_m=tx_ant_positions_m,
+            codebook=weights, tx_ant_positions_m=tx_ant_positions_m, batch_rays=cfg.ckm.batch_rays,
             min_hits_for_spread=cfg.ckm.min_hits_for_spread, min_hits_for_power=cfg.ckm.min_hits_for_power,
             min_effective_hits_for_power=cfg.ckm.min_effective_hits_for_power,
             max_footprint_cells=cfg.ckm.max_footprint_cells, cell_size_m=cfg.ckm.cell_size_m,

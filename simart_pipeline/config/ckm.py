@@ -38,6 +38,11 @@ class Ckm(_Model):
         "candidate generator, which finds the same paths here at a fraction of the time and memory "
         "per receiver (docs/ckm.md)")
     num_rays: int = Field(10_000_000, ge=1_000, description="fast mode: rays per transmitter")
+    # Memory, not results: a batch's ray state is about 0.5 GB per million rays; the sums change
+    # only in float64 summation order (GPU: 4M rays a batch, docs/ckm-one-pass.md "Session 24")
+    batch_rays: int | None = Field(
+        None, ge=1_000, description="fast mode: rays traced at once (about 0.5 GB of ray state per million); "
+        "lower it where a GPU's memory is small; null: 1M on a CPU, 4M on a GPU")
     min_hits_for_spread: int = Field(10, ge=1, description="fast mode: fewer ray hits mask the spreads")
     # 5: a cell's power from n ray hits has a relative sampling error of about 1/sqrt(n) (the hit
     # count's own fluctuation), about 2 dB at 5 hits, while one or two hits can be tens of dB off
