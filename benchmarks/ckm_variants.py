@@ -143,11 +143,9 @@ def _other_sums(s: SceneRuns, n: int, default_warm_s: float, maps: dict, repeats
     other = _layers(m)
     a, b = maps["one_pass_v_path_gain_db"], other["path_gain_db"]
     both = np.isfinite(a) & np.isfinite(b)
-    times = {"host_warm_s": round(warm, 3), "device_warm_s": default_warm_s}
-    if not default_on_device:
-        times = {"host_warm_s": default_warm_s, "device_warm_s": round(warm, 3)}
-    return {**times, "other_first_call_s": cs._r3(first),
-            "host_over_device_time": round(times["host_warm_s"] / times["device_warm_s"], 3),
+    device_s, host_s = (default_warm_s, round(warm, 3)) if default_on_device else (round(warm, 3), default_warm_s)
+    return {"host_warm_s": host_s, "device_warm_s": device_s, "other_first_call_s": cs._r3(first),
+            "host_over_device_time": round(host_s / device_s, 3),
             "same_cells_with_a_value": bool(np.array_equal(np.isfinite(a), np.isfinite(b))),
             "path_gain_max_abs_diff_db": float(np.max(np.abs(a[both] - b[both]), initial=0.0)),
             "best_beam_same_pct": round(100 * float(np.mean(
