@@ -100,9 +100,10 @@ __all__ = ["OnePassMoments", "adaptive_one_pass_moments", "beam_factors", "defau
            "outdoor_fraction", "undersampled_fraction"]
 
 DEFAULT_BATCH_RAYS = 1 << 20  # about 0.5 GB of ray state on the LLVM backend
-# on a GPU each batch costs Python a fixed time to trace its kernels: 4M rays (about 2 GB of ray
-# state) took an H200 0.33 s on the canyon at 1e7 rays against 0.44-0.53 s in 1M batches (8M: no
-# faster; Munich 2.8 against 1.9 s), docs/ckm-one-pass.md "Session 24"
+# on a GPU each batch costs Python a fixed time to trace its kernels: 4M rays took an H200 0.33 s
+# on the canyon at 1e7 rays against 0.44-0.53 s in 1M batches (8M: no faster; Munich 2.8 against
+# 1.9 s), docs/ckm-one-pass.md "Session 24". Its memory on the GPU was not measured: about 2 GB if
+# the LLVM backend's 0.5 GB per million rays holds there
 DEFAULT_BATCH_RAYS_GPU = 1 << 22
 DEFAULT_MIN_HITS_FOR_SPREAD = 10
 DEFAULT_MIN_HITS_FOR_POWER = 5  # config.Ckm.min_hits_for_power's default; the reasoning is there

@@ -38,7 +38,8 @@ class Ckm(_Model):
         "candidate generator, which finds the same paths here at a fraction of the time and memory "
         "per receiver (docs/ckm.md)")
     num_rays: int = Field(10_000_000, ge=1_000, description="fast mode: rays per transmitter")
-    # Memory, not results: a batch's ray state is about 0.5 GB per million rays; the sums change
+    # Memory, not results: a batch's ray state is about 0.5 GB per million rays (measured on the
+    # LLVM backend; on a GPU not measured); the sums change
     # only in float64 summation order (GPU: 4M rays a batch, docs/ckm-one-pass.md "Session 24")
     batch_rays: int | None = Field(
         None, ge=1_000, description="fast mode: rays traced at once (about 0.5 GB of ray state per million); "
