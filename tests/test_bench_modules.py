@@ -699,3 +699,25 @@ def test_ckm_variants_two_runs_agree_to_the_bit(tmp_path, monkeypatch):
     (tmp_path / "b" / "results.json").write_text(json.dumps(other))
     with pytest.raises(ValueError, match="main ray counts differ"):
         cv.compare(tmp_path / "a", tmp_path / "b")
+
+
+def test_diffuse_connections_benchmark_reports_each_setting_against_a_finer_reference(tmp_path):
+    """benchmarks/diffuse_connections on the street canyon (every mechanism) at 2e4 rays against the
+    one-pass at 2e5: a row per number of connections per diffuse hit, timed warm, over the
+    reference's cells. The connections are deposits of their own (more ray hits), the first setting
+    is the time unit, and a reference no finer than the runs is refused."""
+    from benchmarks import diffuse_connections as dc
+
+    args = ["--scenes", "street_canyon", "--rays", "2e4", "--connections", "0", "1", "--repeats", "1"]
+    assert dc.main(["--out", str(tmp_path), "--reference-rays", "2e5"] + args) == 0
+    r = json.loads((tmp_path / "results.json").read_text())["scenes"]["street_canyon"]
+    assert r["reference"]["rays"] == 200_000 and r["reference"]["cells_with_a_value"] > 100
+    runs = r["runs"]
+    assert set(runs) == {"0.0", "1.0"} and runs["0.0"]["time_over_first"] == 1.0
+    assert runs["1.0"]["ray_hits"] > runs["0.0"]["ray_hits"]
+    for v in runs.values():
+        assert v["warm_s"] > 0 and 0 < v["cells_covered_pct"] <= 100
+        assert 0 <= v["path_gain_abs_db"]["p50"] <= v["path_gain_abs_db"]["p95"] and 0 <= v["best_beam_agreement_pct"] <= 100
+    assert (tmp_path / "results.md").read_text().count("| street_canyon |") == 2
+    with pytest.raises(SystemExit):
+        dc.main(["--out", str(tmp_path / "b"), "--reference-rays", "2e4"] + args)

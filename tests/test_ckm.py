@@ -263,29 +263,34 @@ def test_the_config_asks_for_the_second_pass_and_the_tile_says_what_it_did(tiny_
 
 def test_the_config_sets_the_fast_modes_ray_batch_and_the_layers_do_not_depend_on_it(tiny_built, tiny_scene,
                                                                                      monkeypatch):
-    """ckm.batch_rays (memory) reaches the one-pass solver through the tile (null: the solver's
-    own default), and the tile's layers are those of one batch: hit counts and masks equal, values
-    to float64 summation order."""
+    """ckm.batch_rays (memory) and ckm.diffuse_connections reach the one-pass solver through the
+    tile (null: the solver's own default), and the tile's layers are those of one batch: hit counts
+    and masks equal, values to float64 summation order (the tiny scene's ray tracing has no diffuse
+    reflection, so the connections change nothing)."""
     from simart_pipeline.ckm import one_pass as op
 
     _, geom, _, out = tiny_built
     seen = []
     solve = op.one_pass_moments
-    monkeypatch.setattr(op, "one_pass_moments", lambda *a, **k: seen.append(k["batch_rays"]) or solve(*a, **k))
+    monkeypatch.setattr(op, "one_pass_moments", lambda *a, **k: seen.append(
+        (k["batch_rays"], k["diffuse_connections"])) or solve(*a, **k))
 
-    def fast(batch):
+    def fast(batch, connections=0.0):
         return _cfg(tiny_scene, lambda raw: raw["ckm"].update(tiles=[1, 1], cell_size_m=2.0, mode="fast",
-                                                              num_rays=50_000, batch_rays=batch))
+                                                              num_rays=50_000, batch_rays=batch,
+                                                              diffuse_connections=connections))
 
     radio = RadioScene.from_config(meshes.radio_scene_file(out), fast(None))
-    one, many = tile_layers(radio, fast(None), geom, "r0c0"), tile_layers(radio, fast(7_001), geom, "r0c0")
-    assert set(seen) == {None, 7_001}
+    one, many = tile_layers(radio, fast(None), geom, "r0c0"), tile_layers(radio, fast(7_001, 2.0), geom, "r0c0")
+    assert set(seen) == {(None, 0.0), (7_001, 2.0)}
     for name in ("has_path", "enough_hits", "count"):
         np.testing.assert_array_equal(many[name].values, one[name].values, err_msg=name)
     for name in ("path_gain_db", "rms_delay_spread_s", "toa_s"):
         np.testing.assert_allclose(many[name].values, one[name].values, rtol=1e-9, atol=0, err_msg=name)
     with pytest.raises(ValueError, match="batch_rays"):
         _cfg(tiny_scene, lambda raw: raw["ckm"].update(batch_rays=10))
+    with pytest.raises(ValueError, match="diffuse_connections"):
+        _cfg(tiny_scene, lambda raw: raw["ckm"].update(diffuse_connections=-1))
 
 
 def test_fast_mode_writes_the_same_layers_and_agrees_with_the_reference(tiny_built, tiny_scene):

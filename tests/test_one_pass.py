@@ -1129,9 +1129,11 @@ def test_sums_on_the_device_equal_the_host_sums(tmp_path, sampled):
     """``accumulate_on_device`` (the GPU's path: scatter-adds into per-cell arrays, the beam
     factors per deposit, the footprints' lanes by prefix sums) on the LLVM device gives the host
     accumulator's moments: two heights, several batches, a 2 x 2 codebook, reflections through
-    footprints, and with diffuse reflection and refraction the drawn interactions."""
+    footprints, and with diffuse reflection and refraction the drawn interactions and the diffuse
+    hits' connections to cells (1.5 a hit: one, and a second drawn)."""
     args, cb = _ground_and_wall_run(tmp_path)
-    kw = dict(codebook=cb, batch_rays=30_011, diffuse_reflection=sampled, refraction=sampled)
+    kw = dict(codebook=cb, batch_rays=30_011, diffuse_reflection=sampled, refraction=sampled,
+              diffuse_connections=1.5 if sampled else 0.0)
     host = op.one_pass_moments(*args, accumulate_on_device=False, **kw)
     device = op.one_pass_moments(*args, accumulate_on_device=True, **kw)
     assert (host.beam_power > 0).sum() > 100 and host.count.sum() > 50_000
@@ -1155,14 +1157,16 @@ def test_sums_on_the_device_with_diffraction_and_its_second_pass(tmp_path):
 @pytest.mark.parametrize("sampled", [False, True], ids=["specular", "with diffuse reflection and refraction"])
 def test_diffraction_is_deterministic_and_batch_independent(tmp_path, sampled, resample):
     """Diffraction alone, and with the sampled interactions (whose random numbers the diffracted
-    rays key by their own sample index), with and without the second pass on undersampled cells:
+    rays key by their own sample index; their diffuse hits joined to cells, tagged by the stretch
+    of edge for the second pass), with and without the second pass on undersampled cells:
     the same call twice is bitwise equal, another batch size changes only the float64 summation
     order."""
     radio = RadioScene.from_config(_box_and_ground_scene(tmp_path, True), _cfg())
     x, y = _axes(0.0, 20, 0.0, 20, 2.0)
     codebook = np.ones((1, 1), complex)
     kw = dict(diffraction=True, codebook=codebook, min_hits_for_power=1 if resample == 1 else 50,
-              diffuse_reflection=sampled, refraction=sampled, diffraction_resample_factor=resample)
+              diffuse_reflection=sampled, refraction=sampled, diffraction_resample_factor=resample,
+              diffuse_connections=1.0 if sampled else 0.0)
     a = op.one_pass_moments(radio, np.array([0.0, 0.0, 10.0]), np.zeros(3), x, y, [1.5], 200_000, 2, **kw)
     b = op.one_pass_moments(radio, np.array([0.0, 0.0, 10.0]), np.zeros(3), x, y, [1.5], 200_000, 2, **kw)
     c = op.one_pass_moments(radio, np.array([0.0, 0.0, 10.0]), np.zeros(3), x, y, [1.5], 200_000, 2,
@@ -1300,6 +1304,36 @@ def test_a_weak_transmission_goes_on_by_russian_roulette_and_stays_unbiased(tmp_
     assert abs(both.power[0].sum() / f.mean(-1).sum() - 1) < 4.5 * total_sd and total_sd < 0.05
 
 
+def _lambertian_ground_scene(tmp_path):
+    """A medium dry ground of scattering coefficient S = 1 (Lambertian, no specular energy)."""
+    xml = _write_scene(tmp_path / "g", {"ground": (_ground(), "medium_dry_ground")}, 10.0)
+    radio = RadioScene.from_config(xml, _cfg())
+    radio.scene.objects["ground"].radio_material.scattering_coefficient = 1.0
+    return radio
+
+
+def _lambertian_ground_gain(x, y, H, h):
+    """Sionna RT's diffuse gain of :func:`_lambertian_ground_scene` at the points ``(x, y, h)`` under
+    an iso V source at ``(0, 0, H)``: ``(lambda / 4 pi)^2 * int |R_TM|^2 cos(theta_i) / r1^2 *
+    (cos(theta_s) / pi) / r2^2 dA`` by quadrature around each point's foot: rho = h tan(beta), so
+    (cos(theta_s) / pi) dA / r2^2 = sin(beta) d(beta) d(phi) / pi; Gauss-Legendre in beta, uniform
+    in phi (Gamma = |R_TM|: the field lies in the vertical plane of incidence)."""
+    b, wb = np.polynomial.legendre.leggauss(96)
+    beta, wb = (b + 1) * np.pi / 4, wb * np.pi / 4
+    phi = (np.arange(48) + 0.5) * 2 * np.pi / 48
+    B, P = np.meshgrid(beta, phi, indexing="ij")
+    w = wb[:, None] * np.sin(B) * (2 * np.pi / 48) / np.pi
+    rho = h * np.tan(B)
+    eta = _eta(*_itu(15.0, -0.1, 0.035, 1.63))  # medium dry ground
+    X, Y = np.meshgrid(x, y)
+    ref = np.zeros(X.shape)
+    for k in np.ndindex(X.shape):
+        r1 = np.sqrt((X[k] + rho * np.cos(P)) ** 2 + (Y[k] + rho * np.sin(P)) ** 2 + H**2)
+        _, r_tm = _slab(eta, H / r1, 10.0)
+        ref[k] = (LAM / (4 * np.pi)) ** 2 * (np.abs(r_tm) ** 2 * (H / r1) / r1**2 * w).sum()
+    return ref
+
+
 def test_diffuse_lambertian_ground_scatters_the_reflected_energy(tmp_path):
     """A ground of scattering coefficient S = 1 (Lambertian, no specular energy) under an iso V
     source: the cell mean of the scattered gain is Sionna RT's model integrated over the ground,
@@ -1313,9 +1347,7 @@ def test_diffuse_lambertian_ground_scatters_the_reflected_energy(tmp_path):
     (0.19 % at 4e6 rays; measured 0.998), the median cell to 2 % (measured 0.999), and 95 % of
     the cells to 4.5 of their own (99.2 % were, the worst at 4.6). With K_x = 0.3 a V receiver
     gets 1 - K_x of the V-polarised scattered power."""
-    xml = _write_scene(tmp_path / "g", {"ground": (_ground(), "medium_dry_ground")}, 10.0)
-    radio = RadioScene.from_config(xml, _cfg())
-    radio.scene.objects["ground"].radio_material.scattering_coefficient = 1.0
+    radio = _lambertian_ground_scene(tmp_path)
     H, h, n = 10.0, 1.5, 4_000_000
     tx = np.array([0.0, 0.0, H])
     x, y = _axes(0.0, 12, -10.0, 10, 2.0)
@@ -1330,21 +1362,8 @@ def test_diffuse_lambertian_ground_scatters_the_reflected_energy(tmp_path):
 
     tracer.trace(0, n, sink)
     se = np.sqrt(p2).reshape(grid.ny, grid.nx)
-    # quadrature around each cell centre's foot: rho = h tan(beta), so (cos(theta_s) / pi) dA / r2^2
-    # = sin(beta) d(beta) d(phi) / pi; Gauss-Legendre in beta, uniform in phi
-    b, wb = np.polynomial.legendre.leggauss(96)
-    beta, wb = (b + 1) * np.pi / 4, wb * np.pi / 4
-    phi = (np.arange(48) + 0.5) * 2 * np.pi / 48
-    B, P = np.meshgrid(beta, phi, indexing="ij")
-    w = wb[:, None] * np.sin(B) * (2 * np.pi / 48) / np.pi
-    rho = h * np.tan(B)
-    eta = _eta(*_itu(15.0, -0.1, 0.035, 1.63))  # medium dry ground
+    ref = _lambertian_ground_gain(x, y, H, h)
     X, Y = np.meshgrid(x, y)
-    ref = np.zeros(X.shape)
-    for k in np.ndindex(X.shape):
-        r1 = np.sqrt((X[k] + rho * np.cos(P)) ** 2 + (Y[k] + rho * np.sin(P)) ** 2 + H**2)
-        _, r_tm = _slab(eta, H / r1, 10.0)
-        ref[k] = (LAM / (4 * np.pi)) ** 2 * (np.abs(r_tm) ** 2 * (H / r1) / r1**2 * w).sum()
     got = m.power[0]
     assert (m.count[0] > 300).all() and (m.los_power == 0).all()
     assert abs(got.sum() / ref.sum() - 1) < 4.5 * np.sqrt(p2.sum()) / got.sum()
@@ -1358,6 +1377,41 @@ def test_diffuse_lambertian_ground_scatters_the_reflected_energy(tmp_path):
     v = op.one_pass_moments(radio, tx, np.zeros(3), x, y, np.array([h]), 200_000, 1, rx_polarization="V", **kw)
     full = op.one_pass_moments(radio, tx, np.zeros(3), x, y, np.array([h]), 200_000, 1, **kw)
     np.testing.assert_allclose(v.power, 0.7 * full.power, rtol=1e-4)
+
+
+def test_diffuse_connections_estimate_the_same_scattered_gain_with_less_noise(tmp_path):
+    """Next-event estimation of diffuse reflection (``diffuse_connections``): each diffuse hit is
+    also joined by a shadow ray to a point drawn uniformly in the grid's outdoor cells, and the two
+    estimates are weighted by the balance heuristic. On the Lambertian ground above (Sionna's model
+    by quadrature at the cell centres) at 1e6 rays, with 0.5, 1 and 2.5 connections per hit (a
+    fractional part is a draw): the grid total stays within 1 % (measured 0.25, 0.14, 0.04 % low)
+    and the median cell within 2 % (the quadrature is the centre's value, the maps a cell mean);
+    the RMS relative error over the cells is under 60 % of the scattered rays' alone at the same
+    rays (measured 0.034, 0.032, 0.026 against 0.089), and no cell is off by more than 15 %
+    (0.10 at most; 0.39 without). The deposits of the connections are hits: a cell's count
+    grows. Mutants (at 0.5 connections a hit): the scattered ray's first crossings unweighted
+    (counted twice) put the total 23 % high; a connection's power without the cell area's 1 / A
+    (4 m^2), 71 % high."""
+    radio = _lambertian_ground_scene(tmp_path)
+    H, h, n = 10.0, 1.5, 1_000_000
+    tx = np.array([0.0, 0.0, H])
+    x, y = _axes(0.0, 12, -10.0, 10, 2.0)
+    ref = _lambertian_ground_gain(x, y, H, h)
+    kw = dict(los=False, specular_reflection=True, diffuse_reflection=True)
+
+    def rel(c):
+        m = op.one_pass_moments(radio, tx, np.zeros(3), x, y, np.array([h]), n, 1, diffuse_connections=c, **kw)
+        return m, m.power[0] / ref - 1
+
+    rays, r0 = rel(0.0)
+    for c in (0.5, 1.0, 2.5):
+        m, r = rel(c)
+        assert abs(m.power[0].sum() / ref.sum() - 1) < 0.01, c
+        assert abs(np.median(r)) < 0.02, c
+        assert np.sqrt(np.mean(r**2)) < 0.6 * np.sqrt(np.mean(r0**2)), c
+        assert np.abs(r).max() < 0.15, c
+        assert (m.count > rays.count).all() and (m.los_power == 0).all()
+        np.testing.assert_array_equal(m.min_delay_s > 0, rays.min_delay_s > 0)
 
 
 def _ground_and_wall(tmp_path, patterns: bool):
@@ -1448,8 +1502,8 @@ def test_pathsolvers_diffuse_model_drops_only_what_follows_a_diffuse_reflection(
 
 
 def test_sampled_interactions_are_deterministic_and_do_not_depend_on_the_batch_size(tmp_path):
-    """With refraction and diffuse reflection the random draws are keyed by the lattice index and
-    depth: the same call twice is bitwise equal, and another batch size changes only the float64
+    """With refraction and diffuse reflection the random draws (the diffuse hits' connections to
+    cells among them) are keyed by the lattice index and depth: the same call twice is bitwise equal, and another batch size changes only the float64
     summation order (every layer, beams included). A diffuse flag on materials that do not
     scatter (S = 0, no refraction) leaves the specular-only moments (float32 rounding apart)."""
     radio = _ground_and_wall(tmp_path, patterns=True)
@@ -1457,7 +1511,7 @@ def test_sampled_interactions_are_deterministic_and_do_not_depend_on_the_batch_s
     x, y = _axes(-4.0, 8, -6.0, 6, 2.0)
     args = (radio, np.array([0.0, 1.0, 8.0]), np.array([0.2, 0.1, 0.0]), x, y, np.array([1.5, 3.0]), 200_000, 3)
     kw = dict(codebook=cb, tx_ant_positions_m=np.zeros((1, 3)), refraction=True, diffuse_reflection=True,
-              rx_polarization="V")
+              rx_polarization="V", diffuse_connections=1.5)
     one = op.one_pass_moments(*args, batch_rays=200_000, **kw)
     many = op.one_pass_moments(*args, batch_rays=30_011, **kw)
     again = op.one_pass_moments(*args, batch_rays=30_011, **kw)

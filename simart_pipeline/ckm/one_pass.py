@@ -494,6 +494,7 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                      max_footprint_cells: float = DEFAULT_MAX_FOOTPRINT_CELLS,
                      solids: Solids | None = None, diffraction_with_reflections: bool = True,
                      diffraction_resample_factor: int = 1, diffuse_last_only: bool = False,
+                     diffuse_connections: float = 0.0,
                      accumulate_on_device: bool | None = None) -> OnePassMoments:
     """Per-cell power moments of one transmitter over a grid, from one shoot-and-bounce pass.
 
@@ -588,7 +589,8 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
     tracer = Tracer(radio, tx_position_m, rot, grid, int(num_rays), depth, los, rx_polarization,
                      with_beams=codebook is not None, specular=specular_reflection, refraction=refraction,
                      diffuse=diffuse_reflection, max_footprint_cells=max_footprint_cells,
-                     outdoor_fraction=frac, diffuse_last_only=diffuse_last_only)
+                     outdoor_fraction=frac, diffuse_last_only=diffuse_last_only,
+                     diffuse_connections=float(diffuse_connections))
     tracer.device_deposits = on_device
     accumulator = _DeviceAccumulator if on_device else _Accumulator
     acc = accumulator(grid, tx_position_m, codebook, ant, rot, radio.wavelength_m)

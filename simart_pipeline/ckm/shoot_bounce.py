@@ -71,6 +71,8 @@ _GOLDEN_RATIO = (1.0 + 5.0**0.5) / 2.0
 _SPAWN_EPSILON = 89.0 * 2.0**-24  # Mitsuba's RayEpsilon for float32
 # Purposes of the per-ray random numbers (hashed with the lattice index and the depth)
 _DRAW_EVENT, _DRAW_DIR1, _DRAW_DIR2, _DRAW_LOBE, _DRAW_SPLIT, _DRAW_ROULETTE = range(6)
+# a diffuse hit's connections to cells (Tracer._connect): taken or not, which cell, where in it
+_DRAW_NEE_TAKE, _DRAW_NEE_CELL, _DRAW_NEE_X, _DRAW_NEE_Y = range(6, 10)
 _RNG_SEED = 0x2545F491
 # the share of a hit's energy below which a ray of a split goes on by Russian roulette
 SPLIT_MIN_SHARE = 0.03
@@ -410,7 +412,7 @@ class Tracer:
                  max_depth: int, los: bool, rx_polarization: str | None, with_beams: bool = False, *,
                  specular: bool = True, diffuse: bool = False, refraction: bool = False,
                  max_footprint_cells: float = 1.0, outdoor_fraction: np.ndarray | None = None,
-                 diffuse_last_only: bool = False):
+                 diffuse_last_only: bool = False, diffuse_connections: float = 0.0):
         import drjit as dr
         import mitsuba as mi
 
@@ -473,6 +475,35 @@ class Tracer:
         self.floor_z = opaque(min(float(self.scene.bbox().min.z) + 1e-3, float(np.min(grid.heights))))
         self.power_scale = opaque((4 * np.pi / num_rays) * (radio.wavelength_m / (4 * np.pi)) ** 2
                                   / (grid.dx * grid.dy))
+        self.nee = None
+        if self.diffuse and diffuse_connections > 0:
+            self._setup_connections(float(diffuse_connections), num_rays, radio.wavelength_m)
+
+    def _setup_connections(self, per_hit: float, num_rays: int, wavelength_m: float) -> None:
+        """The candidate cells of the diffuse hits' connections (:meth:`_connect`): every cell
+        with a part outside buildings, on every plane, each drawn with the same probability."""
+        dr, mi, grid = self.dr, self.mi, self.grid
+        frac = (np.ones(int(np.prod(grid.shape))) if self.outdoor is None
+                else np.asarray(self.outdoor.numpy(), np.float64))
+        cand = np.flatnonzero(frac > 0)
+        if not len(cand):
+            return
+        h, rc = np.divmod(cand, grid.ny * grid.nx)
+        row, col = np.divmod(rc, grid.nx)
+        density = per_hit / (len(cand) * grid.dx * grid.dy)  # connections per m^2 of candidate plane
+        self.nee = dict(
+            per_hit=per_hit, cell=mi.UInt32(cand.astype(np.uint32)),
+            x0=mi.Float((grid.x_lo + col * grid.dx).astype(np.float32)),
+            y0=mi.Float((grid.y_lo + row * grid.dy).astype(np.float32)),
+            z=mi.Float(np.asarray(grid.heights, np.float64)[h].astype(np.float32)),
+            num=dr.opaque(mi.UInt64, len(cand)),
+            density=dr.opaque(mi.Float, density),
+            # density per candidate cell (0 elsewhere): the MIS weight of a scattered ray's crossing
+            cell_density=mi.Float(np.where(frac > 0, density, 0.0).astype(np.float32)),
+            # a connection's power: |E_s|^2 * this / r^2 / (the two strategies' densities per m^2):
+            # a crossing's power scale times its 1 / |cos| times the crossing density |cos| / r^2
+            scale=dr.opaque(mi.Float, (4 * np.pi / num_rays) * (wavelength_m / (4 * np.pi)) ** 2
+                            / (grid.dx * grid.dy)))
 
     def launch(self, start: int, stop: int):
         dr, mi = self.dr, self.mi
@@ -596,6 +627,14 @@ class Tracer:
         if weight is not None:
             power *= weight
         cell = cell_offset + mi.UInt32(row) * g["nx_int"] + mi.UInt32(col)
+        if "dir_pdf" in take:
+            # the first segment after a diffuse reflection: the balance heuristic's share of the
+            # scattered ray (density dir_pdf per sr, |d_z| / t^2 per m^2 of the plane) beside the
+            # hit's connections to cells (Tracer._connect), which estimate the same crossings
+            t_c = dr.gather(mi.Float, t_h, idx)
+            p_ray = take["dir_pdf"] * dr.abs(d.z) / dr.maximum(t_c * t_c, 1e-12)
+            p_conn = dr.gather(mi.Float, self.nee["cell_density"], cell)
+            power *= dr.select(take["dir_pdf"] > 0, p_ray / (p_ray + p_conn), 1.0)
         out = dict(cell=cell, power=power, dist=dist)
         if "stretch" in take:
             out["stretch"] = take["stretch"]
@@ -729,15 +768,24 @@ class Tracer:
         h = _hash32(_hash32(idx + _RNG_SEED) ^ dr.opaque(mi.UInt32, _key(depth, purpose)))
         return mi.Float(h >> 8) * (2.0**-24)
 
+    def _bits(self, idx, depth: int, purpose: int, sub):
+        """32 random bits from the ray's lattice index, the depth, a purpose and ``sub`` (UInt32:
+        which of a hit's connections)."""
+        dr, mi = self.dr, self.mi
+        h = _hash32(idx + _RNG_SEED) ^ dr.opaque(mi.UInt32, _key(depth, purpose))
+        return _hash32(h ^ _hash32(sub + 0x68E31DA4))
+
     def _diffuse_direction(self, d, n, d_r, pat, idx, depth):
-        """Scattered direction and pattern weight ``f_s / q`` per ray (see the module docstring)."""
+        """Scattered direction, pattern weight ``f_s / q`` and sampling density ``q`` (per sr) per
+        ray (see the module docstring)."""
         dr, mi = self.dr, self.mi
         u1, u2 = self._uniform(idx, depth, _DRAW_DIR1), self._uniform(idx, depth, _DRAW_DIR2)
         frame = mi.Frame3f(n)
         ko_cos = frame.to_world(mi.warp.square_to_cosine_hemisphere(mi.Point2f(u1, u2)))
-        ko, weight = ko_cos, mi.Float(1.0)  # Lambertian f_s = cos / pi, sampled with q = cos / pi
+        # Lambertian f_s = cos / pi, sampled with q = cos / pi
+        ko, weight, q = ko_cos, mi.Float(1.0), dr.maximum(dr.dot(ko_cos, n), 0.0) * (1.0 / np.pi)
         if len(self.patterns) == 1:
-            return ko, weight
+            return ko, weight, q
         from sionna.rt.radio_materials.scattering_pattern import BackscatteringPattern
 
         ki_local = frame.to_local(d)
@@ -753,20 +801,64 @@ class Tracer:
                 sp, cp = dr.sincos(2.0 * dr.pi * u2)
                 sn = dr.sqrt(dr.maximum(1.0 - c * c, 0.0))
                 ko_k = mi.Frame3f(axis).to_world(mi.Vector3f(sn * cp, sn * sp, c))
-                v_r = dr.power(dr.maximum(0.5 * (1.0 + dr.dot(d_r, ko_k)), 0.0), a_r)
-                v_i = dr.power(dr.maximum(0.5 * (1.0 - dr.dot(d, ko_k)), 0.0), a_i)
-                q = (lam * (a_r + 1) * v_r + (1.0 - lam) * (a_i + 1) * v_i) * (1.0 / (4.0 * np.pi))
             else:  # any other registered pattern: cosine-weighted, weighted by f_s / q
                 ko_k = ko_cos
-                q = dr.maximum(frame.to_local(ko_cos).z, 0.0) * (1.0 / np.pi)
-            up = (dr.dot(ko_k, n) > 0) & (q > 0)
-            fs = pattern(ki_local, frame.to_local(ko_k))
+            fs, q_k = self._pattern_density(pattern, frame, ki_local, d, d_r, ko_k)
+            up = (dr.dot(ko_k, n) > 0) & (q_k > 0)
             sel = pat == k
             ko = dr.select(sel, ko_k, ko)
-            weight = dr.select(sel, dr.select(up, fs / dr.select(up, q, 1.0), 0.0), weight)
-        return ko, weight
+            weight = dr.select(sel, dr.select(up, fs / dr.select(up, q_k, 1.0), 0.0), weight)
+            q = dr.select(sel, q_k, q)
+        return ko, weight, q
 
-    def _interact(self, st, t, ids, prim, keep, depth: int):
+    def _pattern_density(self, pattern, frame, ki_local, d, d_r, ko):
+        """``f_s`` of a registered (not Lambertian) scattering pattern towards ``ko`` and the
+        density ``q`` (per sr) with which :meth:`_diffuse_direction` draws ``ko``."""
+        dr = self.dr
+        from sionna.rt.radio_materials.scattering_pattern import BackscatteringPattern
+
+        if isinstance(pattern, BackscatteringPattern):
+            lam = float(np.array(pattern.lambda_).ravel()[0])
+            a_r, a_i = int(pattern.alpha_r), int(pattern.alpha_i)
+            v_r = dr.power(dr.maximum(0.5 * (1.0 + dr.dot(d_r, ko)), 0.0), a_r)
+            v_i = dr.power(dr.maximum(0.5 * (1.0 - dr.dot(d, ko)), 0.0), a_i)
+            q = (lam * (a_r + 1) * v_r + (1.0 - lam) * (a_i + 1) * v_i) * (1.0 / (4.0 * np.pi))
+        else:
+            q = dr.maximum(frame.to_local(ko).z, 0.0) * (1.0 / np.pi)
+        return pattern(ki_local, frame.to_local(ko)), q
+
+    def _scattering_density(self, d, n, d_r, pat, ko):
+        """``f_s`` of each hit's scattering pattern towards ``ko`` (above the face) and the density
+        ``q`` (per sr) with which :meth:`_diffuse_direction` draws it."""
+        dr, mi = self.dr, self.mi
+        fs = dr.maximum(dr.dot(ko, n), 0.0) * (1.0 / np.pi)
+        q = fs
+        if len(self.patterns) > 1:
+            frame = mi.Frame3f(n)
+            ki_local = frame.to_local(d)
+            for k, pattern in enumerate(self.patterns[1:], start=1):
+                fs_k, q_k = self._pattern_density(pattern, frame, ki_local, d, d_r, ko)
+                sel = pat == k
+                fs, q = dr.select(sel, fs_k, fs), dr.select(sel, q_k, q)
+        return fs, q
+
+    def _scattered_field(self, d, ko, er, ei, kx, magnitude2):
+        """The scattered field towards ``ko`` of an incident field ``(er, ei)`` along ``d``: the
+        XPD rotation from the incident (theta, phi) basis to the scattered one, scaled to
+        ``|E_s|^2 = magnitude2`` (module docstring)."""
+        dr, mi = self.dr, self.mi
+        th_i, ph_i = _theta_phi_hat(dr, mi, d)
+        th_o, ph_o = _theta_phi_hat(dr, mi, ko)
+        e2 = dr.squared_norm(er) + dr.squared_norm(ei)
+        scale = dr.sqrt(magnitude2 / dr.select(e2 > 0, e2, 1.0))
+        ca, cb = dr.sqrt(1.0 - kx), dr.sqrt(kx)
+        out = []
+        for e in (er, ei):
+            et, ep = dr.dot(e, th_i), dr.dot(e, ph_i)
+            out.append(scale * ((ca * et - cb * ep) * th_o + (cb * et + ca * ep) * ph_o))
+        return out
+
+    def _interact(self, st, t, ids, prim, keep, depth: int, sink=None):
         """One interaction per ray, drawn among the enabled ones in proportion to their energies
         and weighted by ``1 / sqrt(probability)`` (module docstring); with refraction and a
         reflection both on, each hit is split instead: its transmitted ray goes on with its own
@@ -812,6 +904,7 @@ class Tracer:
             w_refr = c_r * c_r + c_i * c_i + g_r * g_r + g_i * g_i  # |T E|^2
         else:
             w_refr = zero
+        hit = keep  # the hits, before the roulette below
         if split:  # each ray's energy: the reflected one's W_r = w_spec + w_diff, drawn; T E exact
             total_r = w_spec + w_diff
             u = self._uniform(st["idx"], depth, _DRAW_EVENT) * total_r
@@ -853,20 +946,23 @@ class Tracer:
             new_o = dr.select(refr, mi.Point3f(p - offset * n), new_o)
             alive &= ~(refr & (d.z < 0) & (p.z <= self.floor_z))
             m = [dr.select(refr, st[k], mk) for k, mk in zip(("m0", "m1", "m2"), m)]
+        extra = {}
         if self.diffuse:
-            ko, w_pat = self._diffuse_direction(d, n, d_r, pat, st["idx"], depth)
+            p_diff = w_diff / dr.select(total > 0, total, 1.0)  # the probability of drawing diffuse
+            if self.nee is not None and sink is not None:
+                connect = hit & (w_diff > 0)
+                if split:
+                    connect &= ~through
+                if self.diffuse_last_only:
+                    connect &= st["anchor"] == (st["tube_l0"] if "tube_l0" in st else 0.0)
+                self._connect(st, p, n, d, d_r, w_diff, p_diff, kx, pat, length, connect, depth, sink)
+            ko, w_pat, q_dir = self._diffuse_direction(d, n, d_r, pat, st["idx"], depth)
             alive &= ~diff | (w_pat > 0)
             # XPD rotation from the incident (theta, phi) basis to the scattered one, magnitude
             # sqrt(W f_s / q) (Sionna: S Gamma sqrt(f_s * solid angle) / sqrt(probability))
-            th_i, ph_i = _theta_phi_hat(dr, mi, d)
-            th_o, ph_o = _theta_phi_hat(dr, mi, ko)
-            e2 = dr.squared_norm(er) + dr.squared_norm(ei)
-            scale = dr.sqrt(total * w_pat / dr.select(diff & alive, e2, 1.0))
-            ca, cb = dr.sqrt(1.0 - kx), dr.sqrt(kx)
-            out = []
-            for e in (er, ei):
-                et, ep = dr.dot(e, th_i), dr.dot(e, ph_i)
-                out.append(scale * ((ca * et - cb * ep) * th_o + (cb * et + ca * ep) * ph_o))
+            out = self._scattered_field(d, ko, er, ei, kx, total * w_pat)
+            if self.nee is not None:  # the scattered ray's density: its first crossings' MIS weight
+                extra["dir_pdf"] = dr.select(diff, p_diff * q_dir, 0.0)
             new_re = dr.select(diff, out[0], new_re)
             new_im = dr.select(diff, out[1], new_im)
             new_d = dr.select(diff, ko, new_d)
@@ -875,8 +971,84 @@ class Tracer:
             m = [dr.select(diff, dk * ko, mk) for dk, mk in zip(dep, m)]
             anchor = dr.select(diff, length, anchor)
         new = dict(o=new_o, d=new_d, e_re=new_re, e_im=new_im, length=length, m0=m[0], m1=m[1], m2=m[2],
-                   idx=st["idx"], anchor=anchor, **{k: st[k] for k in _CARRIED if k in st})
+                   idx=st["idx"], anchor=anchor, **extra, **{k: st[k] for k in _CARRIED if k in st})
         return _compact(dr, new, alive)
+
+    def _connect(self, st, p, n, d, d_r, w_diff, p_diff, kx, pat, length, active, depth: int, sink) -> None:
+        """Next-event estimation of the diffuse reflections: each active hit (point ``p``, face
+        normal ``n`` towards the incoming side, diffuse energy ``w_diff``, path length ``length``
+        to ``p``) is joined to ``per_hit`` cells on average (``floor`` of them always, one more
+        with the fractional part's probability), drawn uniformly among the candidate cells
+        (:meth:`_setup_connections`), at a uniform point in the cell; a shadow ray checks that
+        the point sees the hit. The point's power is Sionna's scattered field there,
+        ``|E_s|^2 = w_diff f_s``, spread as ``(lambda / 4 pi)^2 / r^2`` like a ray's, and it is
+        combined with the scattered ray's own crossings (:meth:`_deposits`) by the balance
+        heuristic of multiple importance sampling (Veach and Guibas, SIGGRAPH 1995): each
+        estimate is divided by the sum of the two strategies' densities per m^2 of the plane,
+        ``per_hit / (candidates * cell area)`` and ``p_diff q |k_z| / r^2`` (``q``: the density of
+        the drawn direction, :meth:`_diffuse_direction`). A far cell that a scattered ray
+        crosses by chance once in millions gets its share from every hit it sees; near the hit
+        the scattered rays carry it. Delay and directions are the cell centre's, as every other
+        deposit's."""
+        dr, mi, nee, g = self.dr, self.mi, self.nee, self.g
+        lanes = dr.compress(active)
+        m = dr.width(lanes)
+        if m == 0:
+            return
+        k_max = int(np.ceil(nee["per_hit"]))
+        rep = dr.arange(mi.UInt32, k_max * m)
+        k = rep // m
+        src = dr.gather(mi.UInt32, lanes, rep - k * m)
+        take = lambda v: dr.gather(type(v), v, src)  # noqa: E731
+        idx = take(st["idx"])
+        unit = lambda b: mi.Float(b >> 8) * (2.0**-24)  # noqa: E731
+        ok = unit(self._bits(idx, depth, _DRAW_NEE_TAKE, k)) < dr.clip(nee["per_hit"] - mi.Float(k), 0.0, 1.0)
+        # a candidate cell with probability 1 / candidates (64-bit product: no bias from rounding)
+        j = mi.UInt32((mi.UInt64(self._bits(idx, depth, _DRAW_NEE_CELL, k)) * nee["num"]) >> 32)
+        x0, y0, z = (dr.gather(mi.Float, nee[c], j) for c in ("x0", "y0", "z"))
+        target = mi.Point3f(x0 + unit(self._bits(idx, depth, _DRAW_NEE_X, k)) * g["dx"],
+                            y0 + unit(self._bits(idx, depth, _DRAW_NEE_Y, k)) * g["dy"], z)
+        ph, nh, dh = take(p), take(n), take(d)
+        v = target - ph
+        r2 = dr.squared_norm(v)
+        r = dr.sqrt(r2)
+        ko = v / dr.maximum(r, 1e-12)
+        ok &= (dr.dot(ko, nh) > 0) & (r > 0)
+        origin = mi.Point3f(ph + (1.0 + dr.max(dr.abs(ph))) * _SPAWN_EPSILON * nh)
+        ray = mi.Ray3f(origin, ko)
+        ray.maxt = r * (1.0 - 1e-5)
+        ok &= ~self.scene.ray_test(ray, ok)
+        fs, q = self._scattering_density(dh, nh, take(d_r), take(pat), ko)
+        e_re, e_im = self._scattered_field(dh, ko, take(st["e_re"]), take(st["e_im"]), take(kx), take(w_diff) * fs)
+        if self.rx_polarization is None:
+            field2 = dr.squared_norm(e_re) + dr.squared_norm(e_im)
+        else:
+            theta_hat, phi_hat = _theta_phi_hat(dr, mi, ko)
+            u = theta_hat if self.rx_polarization == "V" else phi_hat
+            field2 = dr.square(dr.dot(e_re, u)) + dr.square(dr.dot(e_im, u))
+        p_ray = take(p_diff) * q * dr.abs(ko.z) / dr.maximum(r2, 1e-12)
+        power = field2 * nee["scale"] / dr.maximum(r2, 1e-12) / (p_ray + nee["density"])
+        ok &= fs > 0
+        dr.eval(ok, power)
+        sel = dr.compress(ok)
+        if dr.width(sel) == 0:
+            return
+        pick = lambda v: dr.gather(type(v), v, sel)  # noqa: E731
+        ph, dh = pick(ph), pick(dh)
+        centre = mi.Point3f(pick(x0) + 0.5 * g["dx"], pick(y0) + 0.5 * g["dy"], pick(z))
+        v_c = centre - ph
+        r_c = dr.norm(v_c)
+        d_c = v_c / dr.maximum(r_c, 1e-12)
+        # the launch direction: the mirror product's transpose applied to the incoming direction
+        # (rank one after a diffuse bounce or a diffraction: the departure it carries)
+        d_dep = dr.normalize(mi.Vector3f(*(dr.dot(pick(take(st[c])), dh) for c in ("m0", "m1", "m2"))))
+        out = dict(cell=dr.gather(mi.UInt32, nee["cell"], pick(j)), power=pick(power),
+                   dist=pick(take(length)) + r_c)
+        if "stretch" in st:
+            out["stretch"] = pick(take(st["stretch"]))
+        out.update(direction_terms(d_c, d_dep, self.rot, self.with_beams))
+        dr.eval(*out.values())
+        sink(out if self.device_deposits else {k_: v_.numpy() for k_, v_ in out.items()}, False)
 
     def trace(self, start: int, stop: int, sink) -> None:
         """Trace lattice rays ``start..stop-1``; ``sink(deposits, line_of_sight)`` per crossing set."""
@@ -918,7 +1090,7 @@ class Tracer:
             if depth == max_depth:
                 break
             if self.sampled:
-                st = self._interact(st, t_hit, ids, prim, hit, depth)
+                st = self._interact(st, t_hit, ids, prim, hit, depth, sink)
             else:
                 st = self._reflect(st, t_hit, ids, prim, hit)
             if st is None:

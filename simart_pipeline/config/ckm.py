@@ -79,6 +79,15 @@ class Ckm(_Model):
         1, ge=1, le=64, description="fast mode, with diffraction: cells with a ray hit but fewer than "
         "min_hits_for_power get the diffracted part of the stretches of edge that reached them again from this "
         "many times their samples (a second pass, unbiased); 1: no second pass")
+    # Next-event estimation of diffuse reflection (shoot_bounce.Tracer._connect): each diffuse hit
+    # is also joined by a shadow ray to a point drawn uniformly among the tile's outdoor cells, the
+    # two estimates weighted by the balance heuristic (unbiased either way). Off by default: on the
+    # street canyon one connection per hit doubles the run time for the error that 1.4x the rays
+    # give (docs/ckm-one-pass.md, "Session 25"); it pays on small tiles of a scattering-rich scene.
+    diffuse_connections: float = Field(
+        0.0, ge=0, le=64, description="fast mode, with diffuse reflection: cells each diffuse hit is joined to "
+        "on average (a shadow ray to a point drawn uniformly among the outdoor cells, weighted with the "
+        "scattered ray by multiple importance sampling); 0: the scattered ray alone")
     adaptive_max_rays: int | None = Field(
         None, ge=1_000, description="fast mode: where more than max_undersampled_fraction of the reached "
         "cells have fewer than min_hits_for_power hits, the pass is rerun with 4x the rays while that "

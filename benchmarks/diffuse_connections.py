@@ -1,0 +1,125 @@
+"""Run time against error of the diffuse hits' connections to cells (``ckm.diffuse_connections``).
+
+The one-pass with every mechanism (the ``all`` set of :mod:`benchmarks.ckm_solver`) at ``--rays``
+rays, once per number of connections per diffuse hit, timed warm and alternated (the fastest of
+``--repeats``), against the same solver at ``--reference-rays`` with ``--reference-connections``:
+both estimators are unbiased, so the reference's own noise is the floor and the figures are the
+noise at the tested ray count. Over the cells the reference gives a value: how many of them each
+run covers, path gain |dB| p50 / p95, best-beam agreement, RMS delay spread |ns| p50.
+
+    python -m benchmarks.diffuse_connections --out DIR [--scenes street_canyon urban]
+        [--rays 1e7] [--reference-rays 1e8] [--connections 0 0.5 1] [--repeats 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks import ckm_solver as cs
+from benchmarks.bench import machine
+from benchmarks.ckm_variants import SceneRuns
+from simart_pipeline import engine
+from simart_pipeline.ckm import one_pass as op
+
+SCENES = ("street_canyon", "urban")
+CONNECTIONS = (0.0, 0.5, 1.0)
+COMPILE_RAYS = 100_000  # a first call per setting compiles its kernels outside the timing
+
+
+def _solve(s: SceneRuns, n: int, connections: float) -> op.OnePassMoments:
+    return op.one_pass_moments(s.radio, s.tx, s.ori, s.x, s.y, [cs.HEIGHT_M], n, cs.MAX_DEPTH,
+                               codebook=s.codebook, rx_polarization="V", solids=s.solids,
+                               diffraction_resample_factor=s.cfg.ckm.diffraction_resample_factor,
+                               diffuse_connections=connections, **s.switches)
+
+
+def _errors(layers: dict, ref: dict, cells: np.ndarray) -> dict:
+    """A run's layers against the reference's over ``cells`` (the reference's cells with a value)."""
+    g = layers["path_gain_db"][0][cells]
+    has = np.isfinite(g)
+    gain = np.abs(g[has] - ref["path_gain_db"][0][cells][has])
+    ds, ds0 = layers["rms_delay_spread_s"][0][cells], ref["rms_delay_spread_s"][0][cells]
+    both = np.isfinite(ds) & np.isfinite(ds0)
+    return {"cells_covered_pct": round(100 * float(has.mean()), 2),
+            "path_gain_abs_db": {"p50": round(float(np.median(gain)), 4), "p95": round(float(np.percentile(gain, 95)), 3)},
+            "best_beam_agreement_pct": round(100 * float(np.mean(
+                layers["best_beam"][0][cells] == ref["best_beam"][0][cells])), 2),
+            "rms_delay_spread_abs_ns_p50": round(float(np.median(np.abs(ds[both] - ds0[both]))) * 1e9, 3)}
+
+
+def run_scene(name: str, rays: int, reference_rays: int, connections, reference_connections: float,
+              repeats: int, log=print) -> dict:
+    with tempfile.TemporaryDirectory(prefix="diffuse-connections-") as tmp:
+        s = SceneRuns(name, Path(tmp))
+        for c in sorted(set(connections) | {reference_connections}):
+            _solve(s, COMPILE_RAYS, c)
+        t = time.perf_counter()
+        m = _solve(s, reference_rays, reference_connections)
+        res = {"reference": {"rays": reference_rays, "connections": reference_connections,
+                             "s": round(time.perf_counter() - t, 2)}}
+        ref = m.layers()
+        cells = ref["enough_hits"][0] & ~m.masked[0]
+        res["reference"]["cells_with_a_value"] = int(cells.sum())
+        log(f"{name} reference: {res['reference']}", flush=True)
+        times = {c: [] for c in connections}
+        layers, hits = {}, {}
+        for _ in range(repeats):  # alternated: a drift of the machine's speed hits every setting alike
+            for c in connections:
+                t = time.perf_counter()
+                m = _solve(s, rays, c)
+                times[c].append(time.perf_counter() - t)
+                layers[c], hits[c] = m.layers(), int(m.count.sum())
+        runs = {}
+        for c in connections:
+            runs[str(c)] = {"warm_s": round(min(times[c]), 3), "times_s": [round(v, 3) for v in times[c]],
+                            "ray_hits": hits[c], **_errors(layers[c], ref, cells)}
+            log(f"{name} {rays:.0e} rays, {c} connections: {runs[str(c)]}", flush=True)
+        base = runs[str(connections[0])]["warm_s"]
+        for r in runs.values():
+            r["time_over_first"] = round(r["warm_s"] / base, 3)
+        res.update(rays=rays, runs=runs)
+    return res
+
+
+def _table(results: dict) -> list[str]:
+    rows = ["| scene | connections | warm s | x time | cells % | gain p50 / p95 dB | best beam % | DS p50 ns |",
+            "|---|---|---|---|---|---|---|---|"]
+    for name, r in results["scenes"].items():
+        for c, v in r["runs"].items():
+            g = v["path_gain_abs_db"]
+            rows.append(f"| {name} | {c} | {v['warm_s']} | {v['time_over_first']} | {v['cells_covered_pct']} | "
+                        f"{g['p50']} / {g['p95']} | {v['best_beam_agreement_pct']} | {v['rms_delay_spread_abs_ns_p50']} |")
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=sorted(cs.SCENES))
+    ap.add_argument("--rays", type=float, default=1e7)
+    ap.add_argument("--reference-rays", type=float, default=1e8)
+    ap.add_argument("--connections", type=float, nargs="+", default=list(CONNECTIONS))
+    ap.add_argument("--reference-connections", type=float, default=1.0)
+    ap.add_argument("--repeats", type=int, default=2)
+    a = ap.parse_args(argv)
+    if int(a.reference_rays) <= int(a.rays):
+        ap.error("--reference-rays must exceed --rays (the reference's noise is the floor)")
+    a.out.mkdir(parents=True, exist_ok=True)
+    results = {"machine": machine(), "variant": engine.init(), "rays": int(a.rays), "scenes": {}}
+    for name in a.scenes:
+        results["scenes"][name] = run_scene(name, int(a.rays), int(a.reference_rays), a.connections,
+                                            a.reference_connections, max(1, a.repeats))
+    (a.out / "results.json").write_text(json.dumps(results, indent=1))
+    (a.out / "results.md").write_text("\n".join(_table(results)) + "\n")
+    print("\n".join(_table(results)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
