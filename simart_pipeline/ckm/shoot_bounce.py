@@ -995,29 +995,43 @@ class Tracer:
         m = dr.width(lanes)
         if m == 0:
             return
+        # three stages, each on the lanes the last one kept (a kernel computes its masked lanes
+        # too): the connections drawn, those whose point sees the hit, their deposits
         k_max = int(np.ceil(nee["per_hit"]))
         rep = dr.arange(mi.UInt32, k_max * m)
         k = rep // m
         src = dr.gather(mi.UInt32, lanes, rep - k * m)
+        unit = lambda b: mi.Float(b >> 8) * (2.0**-24)  # noqa: E731
+        if nee["per_hit"] != k_max:  # the last connection of a hit is drawn
+            idx = dr.gather(mi.UInt32, st["idx"], src)
+            drawn = unit(self._bits(idx, depth, _DRAW_NEE_TAKE, k)) < dr.clip(nee["per_hit"] - mi.Float(k), 0.0, 1.0)
+            src, k = _kept(dr, drawn, src, k)
+            if src is None:
+                return
         take = lambda v: dr.gather(type(v), v, src)  # noqa: E731
         idx = take(st["idx"])
-        unit = lambda b: mi.Float(b >> 8) * (2.0**-24)  # noqa: E731
-        ok = unit(self._bits(idx, depth, _DRAW_NEE_TAKE, k)) < dr.clip(nee["per_hit"] - mi.Float(k), 0.0, 1.0)
         # a candidate cell with probability 1 / candidates (64-bit product: no bias from rounding)
         j = mi.UInt32((mi.UInt64(self._bits(idx, depth, _DRAW_NEE_CELL, k)) * nee["num"]) >> 32)
         x0, y0, z = (dr.gather(mi.Float, nee[c], j) for c in ("x0", "y0", "z"))
         target = mi.Point3f(x0 + unit(self._bits(idx, depth, _DRAW_NEE_X, k)) * g["dx"],
                             y0 + unit(self._bits(idx, depth, _DRAW_NEE_Y, k)) * g["dy"], z)
-        ph, nh, dh = take(p), take(n), take(d)
+        ph, nh = take(p), take(n)
         v = target - ph
-        r2 = dr.squared_norm(v)
-        r = dr.sqrt(r2)
+        r = dr.norm(v)
         ko = v / dr.maximum(r, 1e-12)
-        ok &= (dr.dot(ko, nh) > 0) & (r > 0)
+        ok = (dr.dot(ko, nh) > 0) & (r > 0)
+        ok &= self._scattering_density(take(d), nh, take(d_r), take(pat), ko)[0] > 0
         origin = mi.Point3f(ph + (1.0 + dr.max(dr.abs(ph))) * _SPAWN_EPSILON * nh)
         ray = mi.Ray3f(origin, ko)
         ray.maxt = r * (1.0 - 1e-5)
         ok &= ~self.scene.ray_test(ray, ok)
+        src, j, tx, ty, tz = _kept(dr, ok, src, j, target.x, target.y, target.z)
+        if src is None:
+            return
+        ph, nh, dh = take(p), take(n), take(d)
+        v = mi.Point3f(tx, ty, tz) - ph
+        r2 = dr.squared_norm(v)
+        ko = v / dr.sqrt(r2)
         fs, q = self._scattering_density(dh, nh, take(d_r), take(pat), ko)
         e_re, e_im = self._scattered_field(dh, ko, take(st["e_re"]), take(st["e_im"]), take(kx), take(w_diff) * fs)
         if self.rx_polarization is None:
@@ -1026,26 +1040,18 @@ class Tracer:
             theta_hat, phi_hat = _theta_phi_hat(dr, mi, ko)
             u = theta_hat if self.rx_polarization == "V" else phi_hat
             field2 = dr.square(dr.dot(e_re, u)) + dr.square(dr.dot(e_im, u))
-        p_ray = take(p_diff) * q * dr.abs(ko.z) / dr.maximum(r2, 1e-12)
-        power = field2 * nee["scale"] / dr.maximum(r2, 1e-12) / (p_ray + nee["density"])
-        ok &= fs > 0
-        dr.eval(ok, power)
-        sel = dr.compress(ok)
-        if dr.width(sel) == 0:
-            return
-        pick = lambda v: dr.gather(type(v), v, sel)  # noqa: E731
-        ph, dh = pick(ph), pick(dh)
-        centre = mi.Point3f(pick(x0) + 0.5 * g["dx"], pick(y0) + 0.5 * g["dy"], pick(z))
-        v_c = centre - ph
+        p_ray = take(p_diff) * q * dr.abs(ko.z) / r2
+        power = field2 * nee["scale"] / r2 / (p_ray + nee["density"])
+        cell_lo = mi.Point3f(*(dr.gather(mi.Float, nee[c], j) for c in ("x0", "y0", "z")))
+        v_c = cell_lo + mi.Vector3f(0.5 * g["dx"], 0.5 * g["dy"], 0.0) - ph
         r_c = dr.norm(v_c)
         d_c = v_c / dr.maximum(r_c, 1e-12)
         # the launch direction: the mirror product's transpose applied to the incoming direction
         # (rank one after a diffuse bounce or a diffraction: the departure it carries)
-        d_dep = dr.normalize(mi.Vector3f(*(dr.dot(pick(take(st[c])), dh) for c in ("m0", "m1", "m2"))))
-        out = dict(cell=dr.gather(mi.UInt32, nee["cell"], pick(j)), power=pick(power),
-                   dist=pick(take(length)) + r_c)
+        d_dep = dr.normalize(mi.Vector3f(*(dr.dot(take(st[c]), dh) for c in ("m0", "m1", "m2"))))
+        out = dict(cell=dr.gather(mi.UInt32, nee["cell"], j), power=power, dist=take(length) + r_c)
         if "stretch" in st:
-            out["stretch"] = pick(take(st["stretch"]))
+            out["stretch"] = take(st["stretch"])
         out.update(direction_terms(d_c, d_dep, self.rot, self.with_beams))
         dr.eval(*out.values())
         sink(out if self.device_deposits else {k_: v_.numpy() for k_, v_ in out.items()}, False)
@@ -1112,6 +1118,17 @@ def _cumulative_lanes(dr, mi, n):
     local = mi.Float(dr.arange(mi.UInt32, total) - dr.gather(mi.UInt32, start, parent))
     dr.eval(parent, local)
     return parent, local
+
+
+def _kept(dr, active, *arrays):
+    """``arrays`` on the ``active`` lanes only, evaluated (all None where none is)."""
+    dr.eval(active, *arrays)
+    sel = dr.compress(active)
+    if dr.width(sel) == 0:
+        return (None,) * len(arrays)
+    out = tuple(dr.gather(type(a), a, sel) for a in arrays)
+    dr.eval(*out)
+    return out
 
 
 def _compact(dr, state: dict, active) -> dict | None:
