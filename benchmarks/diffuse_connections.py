@@ -5,10 +5,12 @@ rays, once per number of connections per diffuse hit, timed warm and alternated 
 ``--repeats``), against the same solver at ``--reference-rays`` with ``--reference-connections``:
 both estimators are unbiased, so the reference's own noise is the floor and the figures are the
 noise at the tested ray count. Over the cells the reference gives a value: how many of them each
-run covers, path gain |dB| p50 / p95, best-beam agreement, RMS delay spread |ns| p50.
+run covers, path gain |dB| p50 / p95, best-beam agreement, RMS delay spread |ns| p50. The first
+setting runs again at the rays each other setting's time buys it: at equal time, which error is
+lower (``--no-equal-time`` skips it).
 
     python -m benchmarks.diffuse_connections --out DIR [--scenes street_canyon urban]
-        [--rays 1e7] [--reference-rays 1e8] [--connections 0 0.5 1] [--repeats 2]
+        [--rays 1e7] [--reference-rays 1e8] [--connections 0 0.5 1] [--repeats 2] [--no-equal-time]
 """
 
 from __future__ import annotations
@@ -54,7 +56,7 @@ def _errors(layers: dict, ref: dict, cells: np.ndarray) -> dict:
 
 
 def run_scene(name: str, rays: int, reference_rays: int, connections, reference_connections: float,
-              repeats: int, log=print) -> dict:
+              repeats: int, equal_time: bool = True, log=print) -> dict:
     with tempfile.TemporaryDirectory(prefix="diffuse-connections-") as tmp:
         s = SceneRuns(name, Path(tmp))
         for c in sorted(set(connections) | {reference_connections}):
@@ -83,18 +85,35 @@ def run_scene(name: str, rays: int, reference_rays: int, connections, reference_
         base = runs[str(connections[0])]["warm_s"]
         for r in runs.values():
             r["time_over_first"] = round(r["warm_s"] / base, 3)
+        if equal_time:  # the first setting again with the rays another one's time buys it
+            for c in connections[1:]:
+                n = int(round(rays * runs[str(c)]["time_over_first"]))
+                t = time.perf_counter()
+                m = _solve(s, n, connections[0])
+                runs[str(c)]["first_at_equal_time"] = {"rays": n, "s": round(time.perf_counter() - t, 3),
+                                                       **_errors(m.layers(), ref, cells)}
+                log(f"{name} {n:.2e} rays, {connections[0]} connections (the time of {c}): "
+                    f"{runs[str(c)]['first_at_equal_time']}", flush=True)
         res.update(rays=rays, runs=runs)
     return res
 
 
+def _row(v: dict) -> str:
+    g = v["path_gain_abs_db"]
+    return (f"{v['cells_covered_pct']} | {g['p50']} / {g['p95']} | {v['best_beam_agreement_pct']} | "
+            f"{v['rms_delay_spread_abs_ns_p50']} |")
+
+
 def _table(results: dict) -> list[str]:
-    rows = ["| scene | connections | warm s | x time | cells % | gain p50 / p95 dB | best beam % | DS p50 ns |",
-            "|---|---|---|---|---|---|---|---|"]
+    rows = ["| scene | connections | rays | warm s | x time | cells % | gain p50 / p95 dB | best beam % | DS p50 ns |",
+            "|---|---|---|---|---|---|---|---|---|"]
     for name, r in results["scenes"].items():
+        first = next(iter(r["runs"]))
         for c, v in r["runs"].items():
-            g = v["path_gain_abs_db"]
-            rows.append(f"| {name} | {c} | {v['warm_s']} | {v['time_over_first']} | {v['cells_covered_pct']} | "
-                        f"{g['p50']} / {g['p95']} | {v['best_beam_agreement_pct']} | {v['rms_delay_spread_abs_ns_p50']} |")
+            rows.append(f"| {name} | {c} | {r['rays']:.2e} | {v['warm_s']} | {v['time_over_first']} | " + _row(v))
+            if "first_at_equal_time" in v:
+                e = v["first_at_equal_time"]
+                rows.append(f"| {name} | {first}, at {c}'s time | {e['rays']:.2e} | {e['s']} | | " + _row(e))
     return rows
 
 
@@ -107,6 +126,8 @@ def main(argv=None) -> int:
     ap.add_argument("--connections", type=float, nargs="+", default=list(CONNECTIONS))
     ap.add_argument("--reference-connections", type=float, default=1.0)
     ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--no-equal-time", action="store_true",
+                    help="skip the first setting's runs at the rays the others' time buys it")
     a = ap.parse_args(argv)
     if int(a.reference_rays) <= int(a.rays):
         ap.error("--reference-rays must exceed --rays (the reference's noise is the floor)")
@@ -114,7 +135,7 @@ def main(argv=None) -> int:
     results = {"machine": machine(), "variant": engine.init(), "rays": int(a.rays), "scenes": {}}
     for name in a.scenes:
         results["scenes"][name] = run_scene(name, int(a.rays), int(a.reference_rays), a.connections,
-                                            a.reference_connections, max(1, a.repeats))
+                                            a.reference_connections, max(1, a.repeats), not a.no_equal_time)
     (a.out / "results.json").write_text(json.dumps(results, indent=1))
     (a.out / "results.md").write_text("\n".join(_table(results)) + "\n")
     print("\n".join(_table(results)))

@@ -705,7 +705,8 @@ def test_diffuse_connections_benchmark_reports_each_setting_against_a_finer_refe
     """benchmarks/diffuse_connections on the street canyon (every mechanism) at 2e4 rays against the
     one-pass at 2e5: a row per number of connections per diffuse hit, timed warm, over the
     reference's cells. The connections are deposits of their own (more ray hits), the first setting
-    is the time unit, and a reference no finer than the runs is refused."""
+    is the time unit and is run again at the rays each other's time buys, and a reference no finer
+    than the runs is refused."""
     from benchmarks import diffuse_connections as dc
 
     args = ["--scenes", "street_canyon", "--rays", "2e4", "--connections", "0", "1", "--repeats", "1"]
@@ -718,6 +719,8 @@ def test_diffuse_connections_benchmark_reports_each_setting_against_a_finer_refe
     for v in runs.values():
         assert v["warm_s"] > 0 and 0 < v["cells_covered_pct"] <= 100
         assert 0 <= v["path_gain_abs_db"]["p50"] <= v["path_gain_abs_db"]["p95"] and 0 <= v["best_beam_agreement_pct"] <= 100
-    assert (tmp_path / "results.md").read_text().count("| street_canyon |") == 2
+    equal = runs["1.0"]["first_at_equal_time"]  # no connection, at the rays one connection's time buys
+    assert equal["rays"] == round(20_000 * runs["1.0"]["time_over_first"]) and equal["s"] > 0
+    assert (tmp_path / "results.md").read_text().count("| street_canyon |") == 3
     with pytest.raises(SystemExit):
         dc.main(["--out", str(tmp_path / "b"), "--reference-rays", "2e4"] + args)
