@@ -289,6 +289,9 @@ def test_the_config_sets_the_fast_modes_ray_batch_and_the_layers_do_not_depend_o
         np.testing.assert_allclose(many[name].values, one[name].values, rtol=1e-9, atol=0, err_msg=name)
     with pytest.raises(ValueError, match="batch_rays"):
         _cfg(tiny_scene, lambda raw: raw["ckm"].update(batch_rays=10))
+    from simart_pipeline.config.ckm import Ckm
+
+    assert Ckm().diffuse_connections == op.DEFAULT_DIFFUSE_CONNECTIONS  # the front's choice, in both places
     with pytest.raises(ValueError, match="diffuse_connections"):
         _cfg(tiny_scene, lambda raw: raw["ckm"].update(diffuse_connections=-1))
 

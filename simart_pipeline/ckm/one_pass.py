@@ -109,6 +109,8 @@ DEFAULT_MIN_HITS_FOR_SPREAD = 10
 DEFAULT_MIN_HITS_FOR_POWER = 5  # config.Ckm.min_hits_for_power's default; the reasoning is there
 DEFAULT_MIN_OUTDOOR_FRACTION = 0.5
 DEFAULT_MAX_FOOTPRINT_CELLS = 8.0
+# config.Ckm.diffuse_connections' default: the run-time/error front chose it (the config says why)
+DEFAULT_DIFFUSE_CONNECTIONS = 0.5
 BEAM_CHUNK = 4096  # directions per step of beam_factors (3x faster than all at once on 2e5)
 _INF_BITS = 0x7F800000  # float32 +inf as uint32
 MAX_PENDING_GROUPS = 1 << 22  # (cell, direction) groups whose beams wait for one evaluation: 96 MB
@@ -494,7 +496,7 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                      max_footprint_cells: float = DEFAULT_MAX_FOOTPRINT_CELLS,
                      solids: Solids | None = None, diffraction_with_reflections: bool = True,
                      diffraction_resample_factor: int = 1, diffuse_last_only: bool = False,
-                     diffuse_connections: float = 0.0,
+                     diffuse_connections: float = DEFAULT_DIFFUSE_CONNECTIONS,
                      accumulate_on_device: bool | None = None) -> OnePassMoments:
     """Per-cell power moments of one transmitter over a grid, from one shoot-and-bounce pass.
 
@@ -552,6 +554,10 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         diffracted rays reached it are sampled again with this many times their samples, and in
         those cells their first-pass part is replaced by the finer one
         (:func:`_resample_undersampled`); ``second_pass`` of the result says what it did
+    :param diffuse_connections: with ``diffuse_reflection``, the cells each diffuse hit is also
+        joined to by a shadow ray, on average (next-event estimation weighted with the scattered
+        ray by the balance heuristic, :meth:`simart_pipeline.ckm.shoot_bounce.Tracer._connect`);
+        0: the scattered ray alone
     :param accumulate_on_device: sum the deposits on the Dr.Jit device (:class:`_DeviceAccumulator`)
         instead of on the host with numpy (:class:`_Accumulator`); None: on the device where the
         variant is ``cuda`` (a GPU), on the host otherwise (bitwise repeatable; on two CPU cores

@@ -81,11 +81,12 @@ class Ckm(_Model):
         "many times their samples (a second pass, unbiased); 1: no second pass")
     # Next-event estimation of diffuse reflection (shoot_bounce.Tracer._connect): each diffuse hit
     # is also joined by a shadow ray to a point drawn uniformly among the tile's outdoor cells, the
-    # two estimates weighted by the balance heuristic (unbiased either way). Off by default: on the
-    # street canyon one connection per hit doubles the run time for the error that 1.4x the rays
-    # give (docs/ckm-one-pass.md, "Session 25"); it pays on small tiles of a scattering-rich scene.
+    # two estimates weighted by the balance heuristic (unbiased either way). 0.5, as the run-time/
+    # error front chose (benchmarks.diffuse_connections, docs/ckm-one-pass.md "Session 25"): on the
+    # street canyon and urban at 1e7 rays, gain p95 and delay spread lower than without at the rays
+    # that cost the same time (1.4-1.6x), gain p50 and best beam as good or better; 1 costs 1.8-1.9x.
     diffuse_connections: float = Field(
-        0.0, ge=0, le=64, description="fast mode, with diffuse reflection: cells each diffuse hit is joined to "
+        0.5, ge=0, le=64, description="fast mode, with diffuse reflection: cells each diffuse hit is joined to "
         "on average (a shadow ray to a point drawn uniformly among the outdoor cells, weighted with the "
         "scattered ray by multiple importance sampling); 0: the scattered ray alone")
     adaptive_max_rays: int | None = Field(
