@@ -9,8 +9,9 @@ material (specular reflection alone: the original path, deterministic) or, where
 reflection or refraction is on, splits or draws the interaction (:meth:`Tracer._interact`). It
 hands every crossing of a grid height plane to a sink as numpy arrays (one call per segment and
 height). Which cells lie indoors is :mod:`simart_pipeline.ckm.outdoor`'s business.
-Everything that depends on the scene, the grid or the device enters the kernels as opaque
-variables, so compiled kernels are reused across grids, tiles and transmitters.
+Everything that depends on the scene, the grid, the device or the ray count enters the kernels
+as opaque variables, so compiled kernels are reused across grids, tiles, transmitters and ray
+counts.
 
 With ``E`` the incident field, ``R``/``T`` the slab reflection and transmission (TE/TM) of the
 hit material, ``S`` its scattering coefficient, the energies are ``w_spec = (1 - S^2) |R E|^2``,
