@@ -62,13 +62,12 @@ class SceneRuns:
         self.switches = {k: bool(getattr(cfg.ray_tracing, k)) for k in cs.SWITCHES}
         self.solids = radio_solids(self.radio)
 
-    def one_pass(self, n: int, rx_polarization="V", batch_rays: int | None = None,
-                 accumulate_on_device: bool | None = None):
+    def one_pass(self, n: int, rx_polarization="V", **kw):
+        """The one-pass call at ``n`` rays; ``kw``: more of ``one_pass_moments``' arguments."""
         return lambda: op.one_pass_moments(
             self.radio, self.tx, self.ori, self.x, self.y, [cs.HEIGHT_M], n, cs.MAX_DEPTH, codebook=self.codebook,
-            rx_polarization=rx_polarization, solids=self.solids, batch_rays=batch_rays,
-            accumulate_on_device=accumulate_on_device,
-            diffraction_resample_factor=self.cfg.ckm.diffraction_resample_factor, **self.switches)
+            rx_polarization=rx_polarization, solids=self.solids,
+            diffraction_resample_factor=self.cfg.ckm.diffraction_resample_factor, **self.switches, **kw)
 
     def radio_map(self, n: int):
         from simart_pipeline.ckm.radiomap import radio_map_path_gain_db

@@ -35,10 +35,7 @@ COMPILE_RAYS = 100_000  # a first call per setting compiles its kernels outside 
 
 
 def _solve(s: SceneRuns, n: int, connections: float) -> op.OnePassMoments:
-    return op.one_pass_moments(s.radio, s.tx, s.ori, s.x, s.y, [cs.HEIGHT_M], n, cs.MAX_DEPTH,
-                               codebook=s.codebook, rx_polarization="V", solids=s.solids,
-                               diffraction_resample_factor=s.cfg.ckm.diffraction_resample_factor,
-                               diffuse_connections=connections, **s.switches)
+    return s.one_pass(n, diffuse_connections=connections)()
 
 
 def _errors(layers: dict, ref: dict, cells: np.ndarray) -> dict:

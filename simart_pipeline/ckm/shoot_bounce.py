@@ -482,9 +482,9 @@ class Tracer:
                                   / (grid.dx * grid.dy))
         self.nee = None
         if self.diffuse and diffuse_connections > 0:
-            self._setup_connections(float(diffuse_connections), num_rays, radio.wavelength_m)
+            self._setup_connections(float(diffuse_connections))
 
-    def _setup_connections(self, per_hit: float, num_rays: int, wavelength_m: float) -> None:
+    def _setup_connections(self, per_hit: float) -> None:
         """The candidate cells of the diffuse hits' connections (:meth:`_connect`): every cell
         with a part outside buildings, on every plane, each drawn with the same probability."""
         dr, mi, grid = self.dr, self.mi, self.grid
@@ -504,11 +504,7 @@ class Tracer:
             num=dr.opaque(mi.UInt64, len(cand)),
             density=dr.opaque(mi.Float, density),
             # density per candidate cell (0 elsewhere): the MIS weight of a scattered ray's crossing
-            cell_density=mi.Float(np.where(frac > 0, density, 0.0).astype(np.float32)),
-            # a connection's power: |E_s|^2 * this / r^2 / (the two strategies' densities per m^2):
-            # a crossing's power scale times its 1 / |cos| times the crossing density |cos| / r^2
-            scale=dr.opaque(mi.Float, (4 * np.pi / num_rays) * (wavelength_m / (4 * np.pi)) ** 2
-                            / (grid.dx * grid.dy)))
+            cell_density=mi.Float(np.where(frac > 0, density, 0.0).astype(np.float32)))
 
     def launch(self, start: int, stop: int):
         dr, mi = self.dr, self.mi
@@ -620,15 +616,7 @@ class Tracer:
             d_sel = dr.select(anchor > 0, d, d_c)
             d_dep = dr.normalize(mi.Vector3f(dr.dot(take["m0"], d_sel), dr.dot(take["m1"], d_sel),
                                              dr.dot(take["m2"], d_sel)))
-        e_re, e_im = take["e_re"], take["e_im"]
-        if self.rx_polarization is None:
-            field2 = dr.squared_norm(e_re) + dr.squared_norm(e_im)
-        else:  # isotropic element of one polarisation: project on theta-hat or phi-hat of the
-            # ray's own arrival direction (the power is the cell mean, so is its projection)
-            theta_hat, phi_hat = _theta_phi_hat(dr, mi, d)
-            u = theta_hat if self.rx_polarization == "V" else phi_hat
-            field2 = dr.square(dr.dot(e_re, u)) + dr.square(dr.dot(e_im, u))
-        power = field2 * self.power_scale / dr.abs(d.z)
+        power = self._received(take["e_re"], take["e_im"], d) * self.power_scale / dr.abs(d.z)
         if weight is not None:
             power *= weight
         cell = cell_offset + mi.UInt32(row) * g["nx_int"] + mi.UInt32(col)
@@ -646,6 +634,18 @@ class Tracer:
         out.update(direction_terms(d_c, d_dep, self.rot, self.with_beams))
         dr.eval(*out.values())
         return out if self.device_deposits else {k: v.numpy() for k, v in out.items()}
+
+    def _received(self, e_re, e_im, d):
+        """``|E|^2`` of a field travelling along ``d`` that the receiver collects: all of it
+        (``rx_polarization`` None), or for an isotropic element of one polarisation its projection
+        on theta-hat (V) or phi-hat (H) of the arrival direction (the power is the cell mean, so is
+        its projection)."""
+        dr = self.dr
+        if self.rx_polarization is None:
+            return dr.squared_norm(e_re) + dr.squared_norm(e_im)
+        theta_hat, phi_hat = _theta_phi_hat(dr, self.mi, d)
+        u = theta_hat if self.rx_polarization == "V" else phi_hat
+        return dr.square(dr.dot(e_re, u)) + dr.square(dr.dot(e_im, u))
 
     def _spread(self, px, py, fp, cell_offset):
         """The crossings repeated once per grid cell their footprint (:meth:`_footprint`) covers,
@@ -1024,29 +1024,24 @@ class Tracer:
         v = target - ph
         r = dr.norm(v)
         ko = v / dr.maximum(r, 1e-12)
-        ok = (dr.dot(ko, nh) > 0) & (r > 0)
-        ok &= self._scattering_density(take(d), nh, take(d_r), take(pat), ko)[0] > 0
+        fs, q = self._scattering_density(take(d), nh, take(d_r), take(pat), ko)
+        ok = (dr.dot(ko, nh) > 0) & (r > 0) & (fs > 0)
         origin = mi.Point3f(ph + (1.0 + dr.max(dr.abs(ph))) * _SPAWN_EPSILON * nh)
         ray = mi.Ray3f(origin, ko)
         ray.maxt = r * (1.0 - 1e-5)
         ok &= ~self.scene.ray_test(ray, ok)
-        src, j, tx, ty, tz = _kept(dr, ok, src, j, target.x, target.y, target.z)
+        src, j, tx, ty, tz, fs, q = _kept(dr, ok, src, j, target.x, target.y, target.z, fs, q)
         if src is None:
             return
-        ph, nh, dh = take(p), take(n), take(d)
+        ph, dh = take(p), take(d)
         v = mi.Point3f(tx, ty, tz) - ph
         r2 = dr.squared_norm(v)
         ko = v / dr.sqrt(r2)
-        fs, q = self._scattering_density(dh, nh, take(d_r), take(pat), ko)
         e_re, e_im = self._scattered_field(dh, ko, take(st["e_re"]), take(st["e_im"]), take(kx), take(w_diff) * fs)
-        if self.rx_polarization is None:
-            field2 = dr.squared_norm(e_re) + dr.squared_norm(e_im)
-        else:
-            theta_hat, phi_hat = _theta_phi_hat(dr, mi, ko)
-            u = theta_hat if self.rx_polarization == "V" else phi_hat
-            field2 = dr.square(dr.dot(e_re, u)) + dr.square(dr.dot(e_im, u))
+        # a crossing's power scale and 1 / |cos| times the crossing density |cos| / r^2, over the
+        # two strategies' densities per m^2 (the balance heuristic)
         p_ray = take(p_diff) * q * dr.abs(ko.z) / r2
-        power = field2 * nee["scale"] / r2 / (p_ray + nee["density"])
+        power = self._received(e_re, e_im, ko) * self.power_scale / r2 / (p_ray + nee["density"])
         cell_lo = mi.Point3f(*(dr.gather(mi.Float, nee[c], j) for c in ("x0", "y0", "z")))
         v_c = cell_lo + mi.Vector3f(0.5 * g["dx"], 0.5 * g["dy"], 0.0) - ph
         r_c = dr.norm(v_c)
@@ -1139,13 +1134,8 @@ def _kept(dr, active, *arrays):
 def _compact(dr, state: dict, active) -> dict | None:
     """The ray state's ``active`` lanes only, evaluated (None when none is left): the rays that
     go on after an interaction."""
-    dr.eval(*state.values(), active)
-    idx = dr.compress(active)
-    if dr.width(idx) == 0:
-        return None
-    out = {k: dr.gather(type(v), v, idx) for k, v in state.items()}
-    dr.eval(*out.values())
-    return out
+    kept = _kept(dr, active, *state.values())
+    return None if kept[0] is None else dict(zip(state, kept))
 
 
 def _unique_keys(dr, key, active) -> np.ndarray:
