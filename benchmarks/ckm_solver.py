@@ -904,7 +904,7 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
     scene's); ``sizes``: compare cells, loop cells, loop budget s and warm repeats of this set;
     ``sample``: the grid's ``x``, ``y`` and the ``seed``, to which the first set adds the outdoor
     cell counts."""
-    from simart_pipeline.ckm.outdoor import radio_solids
+    from simart_pipeline.ckm.outdoor import outdoor_fraction, radio_solids
     from simart_pipeline.ckm.radiomap import radio_map_path_gain_db
 
     cfg = _config(spec, mechanisms)
@@ -918,11 +918,13 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
     repeats = sizes["repeats"]
 
     solids = radio_solids(radio)  # once per radio scene, as ckm_layers does once per tile
+    frac = outdoor_fraction(radio, x, y, [HEIGHT_M], solids=solids)  # likewise
 
     def one_pass(n, rx_polarization="V", **kw):
         kw.setdefault("diffraction_resample_factor", cfg.ckm.diffraction_resample_factor)  # the config's default
         return lambda: op.one_pass_moments(radio, tx, ori, x, y, [HEIGHT_M], n, MAX_DEPTH, codebook=codebook,
-                                           rx_polarization=rx_polarization, solids=solids, **switches, **kw)
+                                           rx_polarization=rx_polarization, solids=solids,
+                                           cell_outdoor_fraction=frac, **switches, **kw)
 
     m, first_s, fast_s = _warm(one_pass(num_rays), repeats)
     fast = m.layers()

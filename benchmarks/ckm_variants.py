@@ -48,7 +48,7 @@ class SceneRuns:
     makes them for the ``all`` set."""
 
     def __init__(self, name: str, folder: Path):
-        from simart_pipeline.ckm.outdoor import radio_solids
+        from simart_pipeline.ckm.outdoor import outdoor_fraction, radio_solids
 
         self.spec = spec = cs.SCENES[name]
         self.cfg = cfg = cs._config(spec, MECHANISMS)
@@ -61,12 +61,15 @@ class SceneRuns:
         self.codebook = dft_codebook(self.radio.array_positions_m("tx"), self.radio.wavelength_m, 8, 8).weights
         self.switches = {k: bool(getattr(cfg.ray_tracing, k)) for k in cs.SWITCHES}
         self.solids = radio_solids(self.radio)
+        # the cells' outdoor share depends on the scene and the grid alone (one per tile, as in
+        # ckm/layers.py), so it is not part of a station's timed call
+        self.outdoor = outdoor_fraction(self.radio, self.x, self.y, [cs.HEIGHT_M], solids=self.solids)
 
     def one_pass(self, n: int, rx_polarization="V", **kw):
         """The one-pass call at ``n`` rays; ``kw``: more of ``one_pass_moments``' arguments."""
         return lambda: op.one_pass_moments(
             self.radio, self.tx, self.ori, self.x, self.y, [cs.HEIGHT_M], n, cs.MAX_DEPTH, codebook=self.codebook,
-            rx_polarization=rx_polarization, solids=self.solids,
+            rx_polarization=rx_polarization, solids=self.solids, cell_outdoor_fraction=self.outdoor,
             diffraction_resample_factor=self.cfg.ckm.diffraction_resample_factor, **self.switches, **kw)
 
     def radio_map(self, n: int):

@@ -418,6 +418,29 @@ def test_direction_groups_are_the_same_with_one_key_or_two():
     assert (np.diff(small[0]) >= 0).all()
 
 
+@pytest.mark.parametrize("table_bits", [20, 3])  # 3: 8 slots, nearly every key collides
+def test_unique_keys_thinned_on_the_device_are_every_distinct_active_key(monkeypatch, table_bits):
+    from simart_pipeline import engine
+
+    engine.init()
+    import drjit as dr
+    import mitsuba as mi
+
+    monkeypatch.setattr(sb, "_DEDUP_TABLE_BITS", table_bits)
+    rng = np.random.default_rng(7)
+    n = 300_000  # above _DEDUP_MIN_LANES: the device rounds run
+    # heavy-tailed, as hits per face: a few keys take most lanes, many appear once or twice
+    small = np.minimum(rng.zipf(1.3, n), 50_000).astype(np.uint64)
+    active = rng.random(n) < 0.7
+    for key in (small, (small << np.uint64(32)) | (small * np.uint64(7) & np.uint64(0xFFFFFFFF))):
+        dr_key = mi.UInt64(key) if key.max() >= 2**32 else mi.UInt32(key.astype(np.uint32))
+        got = sb._unique_keys(dr, dr_key, mi.Bool(active))
+        assert len(got) == len(set(got.tolist()))  # each once
+        np.testing.assert_array_equal(np.sort(got), np.unique(key[active]))
+    none = sb._unique_keys(dr, mi.UInt32(small.astype(np.uint32)), mi.Bool(np.zeros(n, bool)))
+    assert none.dtype == np.uint64 and len(none) == 0
+
+
 def test_one_loop_of_per_cell_sums_equals_a_bincount_per_moment():
     """The fused, GIL-free loop (``_accumulate_deposits``) against the numpy reference it replaced:
     one ``np.bincount`` per moment and ``np.minimum.at`` for the earliest delay, over two deposit
@@ -625,6 +648,8 @@ def test_bad_grids_codebooks_and_masks_are_refused(free_space):
         op.one_pass_moments(*args, codebook=np.ones((2, 1)) * 2.0)
     with pytest.raises(ValueError, match="indoor.*broadcast"):
         op.one_pass_moments(*args, indoor=np.zeros((3, 3), bool))
+    with pytest.raises(ValueError, match="cell_outdoor_fraction.*grid"):
+        op.one_pass_moments(*args, cell_outdoor_fraction=np.ones((4, 4)))
 
 
 def _block(x0, x1, y0, y1, z0, z1) -> trimesh.Trimesh:
@@ -658,6 +683,13 @@ def test_outdoor_mask_with_shared_walls_stacked_parts_and_a_courtyard(tmp_path):
     assert inside[0].sum() > 1000 and (~inside[0] & (X[0] > 70) & (X[0] < 80) & (Y[0] > 10) & (Y[0] < 20)).sum() == 100
     np.testing.assert_array_equal(frac == 0.0, inside)
     np.testing.assert_array_equal(frac == 1.0, ~inside)
+    # the share handed in (one per tile, as ckm_layers does) is the share the solver computes
+    args = (radio, np.array([25.0, 35.0, 30.0]), np.zeros(3), x, y, heights, 20_000, 1)
+    own = op.one_pass_moments(*args)
+    given = op.one_pass_moments(*args, cell_outdoor_fraction=op.outdoor_fraction(radio, x, y, heights))
+    np.testing.assert_array_equal(given.outdoor_fraction, own.outdoor_fraction)
+    np.testing.assert_array_equal(given.masked, own.masked)
+    np.testing.assert_array_equal(given.power, own.power)
 
 
 def test_adaptive_rule_raises_the_rays_until_few_cells_lack_hits(tmp_path):

@@ -131,11 +131,13 @@ def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, t
     and what each one's second pass on undersampled cells did (None: none,
     ``ckm.diffraction_resample_factor``)."""
     from simart_pipeline.ckm.one_pass import adaptive_one_pass_moments
-    from simart_pipeline.ckm.outdoor import radio_solids
+    from simart_pipeline.ckm.outdoor import outdoor_fraction, radio_solids
 
     per_bs = []
     rx = cfg.platforms[0].array
     solids = radio_solids(radio)
+    # the cells' outdoor share: the scene's and the grid's, the same for every station and pass
+    frac = outdoor_fraction(radio, grid.x, grid.y, grid.heights, cell_size_m=cfg.ckm.cell_size_m, solids=solids)
     for b in cfg.base_stations:
         per_bs.append(adaptive_one_pass_moments(
             radio, np.asarray(b.position_m, np.float64), np.deg2rad(np.asarray(b.orientation_deg, np.float64)),
@@ -147,7 +149,7 @@ def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, t
             max_footprint_cells=cfg.ckm.max_footprint_cells, cell_size_m=cfg.ckm.cell_size_m,
             diffraction_resample_factor=cfg.ckm.diffraction_resample_factor,
             diffuse_connections=cfg.ckm.diffuse_connections,
-            indoor=grid.inside_building | grid.outside_region[None], solids=solids,
+            indoor=grid.inside_building | grid.outside_region[None], solids=solids, cell_outdoor_fraction=frac,
             # as the reference mode's receiver: its polarisation, not the whole field
             rx_polarization=rx.polarization if rx.pattern == "iso" else None,
             # the interaction types of the scene's ray tracing, as the reference mode's PathSolver

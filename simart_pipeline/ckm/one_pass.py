@@ -497,7 +497,8 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                      solids: Solids | None = None, diffraction_with_reflections: bool = True,
                      diffraction_resample_factor: int = 1, diffuse_last_only: bool = False,
                      diffuse_connections: float = DEFAULT_DIFFUSE_CONNECTIONS,
-                     accumulate_on_device: bool | None = None) -> OnePassMoments:
+                     accumulate_on_device: bool | None = None,
+                     cell_outdoor_fraction: np.ndarray | None = None) -> OnePassMoments:
     """Per-cell power moments of one transmitter over a grid, from one shoot-and-bounce pass.
 
     :param radio: :class:`simart_pipeline.radio.tracer.RadioScene` (mesh, materials of its
@@ -521,7 +522,9 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
     :param min_outdoor_fraction: cells with less of their area outside buildings
         (:func:`outdoor_fraction`) are masked; the others have their sums divided by that share
         (power normalised by the outdoor area the rays can reach); ``solids``: the radio scene's
-        (:func:`simart_pipeline.ckm.outdoor.radio_solids`), if the caller has them already
+        (:func:`simart_pipeline.ckm.outdoor.radio_solids`), if the caller has them already;
+        ``cell_outdoor_fraction``: that share itself, ``[num_heights, ny, nx]``, if the caller has
+        it already (it depends on the scene and the grid alone: one per tile, not per station)
     :param rx_polarization: None: isotropic receiver collecting the whole field ``|E|^2``
         (RadioMapSolver's); ``"V"`` / ``"H"``: an isotropic element of that polarisation
     :param los, specular_reflection, refraction, diffuse_reflection: interaction types as in
@@ -591,7 +594,13 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
     else:
         ant = None
     depth = int(max_depth) if (specular_reflection or refraction or diffuse_reflection) else 0
-    frac = outdoor_fraction(radio, x_m, y_m, grid.heights, cell_size_m=cell_size_m, solids=solids)
+    if cell_outdoor_fraction is None:
+        frac = outdoor_fraction(radio, x_m, y_m, grid.heights, cell_size_m=cell_size_m, solids=solids)
+    else:
+        frac = np.asarray(cell_outdoor_fraction, np.float64)
+        if frac.shape != grid.shape:
+            raise ValueError(f"cell_outdoor_fraction: shape {frac.shape} is not the grid's [num_heights, ny, nx] "
+                             f"= {list(grid.shape)}")
     tracer = Tracer(radio, tx_position_m, rot, grid, int(num_rays), depth, los, rx_polarization,
                      with_beams=codebook is not None, specular=specular_reflection, refraction=refraction,
                      diffuse=diffuse_reflection, max_footprint_cells=max_footprint_cells,

@@ -362,6 +362,13 @@ def _slab_transmission(dr, cos_i, eta_re, eta_im, thickness, wavelength):
     return out
 
 
+# _unique_keys: a batch's keys are thinned on the device above this many lanes, into a table of
+# 2**_DEDUP_TABLE_BITS slots (4 MiB)
+_DEDUP_MIN_LANES = 1 << 16
+_DEDUP_TABLE_BITS = 20
+_DEDUP_PURPOSE = 15
+
+
 def _hash32(x):
     """lowbias32 (C. Wellons' integer hash): a bijective avalanche mix of UInt32 (mod 2**32)."""
     x = x ^ (x >> 16)
@@ -1138,12 +1145,31 @@ def _compact(dr, state: dict, active) -> dict | None:
     return None if kept[0] is None else dict(zip(state, kept))
 
 
-def _unique_keys(dr, key, active) -> np.ndarray:
-    """Distinct values of the UInt32/UInt64 ``key`` over the active lanes, as uint64 (hash-based:
-    millions of hits, few distinct keys)."""
+def _unique_keys(dr, key, active, rounds: int = 2) -> np.ndarray:
+    """Distinct values of the UInt32/UInt64 ``key`` over the active lanes, as uint64 (millions of
+    hits, few distinct keys). Most duplicates are dropped on the device first: each lane writes
+    its index into a table slot picked by a hash of its key, and only the slot's winner and the
+    lanes whose key differs from the winner's go on (so every distinct key survives), ``rounds``
+    times with a new hash; the few left come to the host for ``pandas.unique``. On a GPU the
+    host's copy and hashing of every lane took 13 ms a batch (canyon, docs/ckm-one-pass.md)."""
+    import mitsuba as mi
+
     idx = dr.compress(active)
     if dr.width(idx) == 0:
         return np.zeros(0, np.uint64)
     k = dr.gather(type(key), key, idx)
+    wide = isinstance(k, mi.UInt64)
+    for r in range(rounds):
+        n = dr.width(k)
+        if n <= _DEDUP_MIN_LANES:
+            break
+        h32 = mi.UInt32(k ^ (k >> 32)) if wide else k
+        slot = _hash32(h32 ^ _key(r, _DEDUP_PURPOSE)) >> (32 - _DEDUP_TABLE_BITS)
+        lane = dr.arange(mi.UInt32, n)
+        table = dr.zeros(mi.UInt32, 1 << _DEDUP_TABLE_BITS)
+        dr.scatter(table, lane, slot)  # one writer per slot wins, whichever
+        winner = dr.gather(mi.UInt32, table, slot)
+        keep = (winner == lane) | (dr.gather(type(k), k, winner) != k)
+        k = dr.gather(type(k), k, dr.compress(keep))
     dr.eval(k)
     return pd.unique(k.numpy().astype(np.uint64))
