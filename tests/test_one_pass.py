@@ -441,6 +441,27 @@ def test_unique_keys_thinned_on_the_device_are_every_distinct_active_key(monkeyp
     assert none.dtype == np.uint64 and len(none) == 0
 
 
+def test_departure_grid_moves_a_direction_by_under_half_a_degree_and_shares_it_with_its_neighbours():
+    """Diffuse and diffracted paths take their departure on DEPARTURE_QUANTUM's grid: unit length,
+    within half a grid diagonal of the true direction, and one point for nearby directions."""
+    from simart_pipeline import engine
+
+    engine.init()
+    import mitsuba as mi
+
+    rng = np.random.default_rng(5)
+    u = rng.normal(size=(1_000_000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    g = sb.on_departure_grid(mi.Vector3f(*(mi.Float(u[:, k].astype(np.float32)) for k in range(3))))
+    g = np.stack([np.asarray(c.numpy(), np.float64) for c in (g.x, g.y, g.z)], -1)
+    np.testing.assert_allclose(np.linalg.norm(g, axis=1), 1.0, atol=1e-6)
+    angle = np.arccos(np.clip((u * g).sum(axis=1), -1.0, 1.0))
+    assert angle.max() <= np.sqrt(3.0) / 2 * sb.DEPARTURE_QUANTUM * 1.01 < np.radians(0.45)
+    # a million directions share about 250,000 grid points (the lattice points next to the unit
+    # sphere); on the beams' own 2**-13 grid each would keep its own
+    assert len(np.unique(np.round(g * 2**20).astype(np.int64), axis=0)) < 0.3 * len(u)
+
+
 def test_one_loop_of_per_cell_sums_equals_a_bincount_per_moment():
     """The fused, GIL-free loop (``_accumulate_deposits``) against the numpy reference it replaced:
     one ``np.bincount`` per moment and ``np.minimum.at`` for the earliest delay, over two deposit

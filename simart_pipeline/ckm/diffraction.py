@@ -58,7 +58,7 @@ from __future__ import annotations
 import numpy as np
 
 from simart_pipeline.ckm.shoot_bounce import (_SPAWN_EPSILON, Grid, _unique_keys, fibonacci_directions,
-                                               reflection_terms)
+                                               on_departure_grid, reflection_terms)
 
 __all__ = ["DiffractionSampler", "WEDGE_KEY_M", "diffracted_bundle_area"]
 
@@ -77,7 +77,6 @@ DIRECT_SAMPLES_PER_RAY = 1
 REFLECTED_SAMPLE_SHARE = 0.125
 PILOT_POINTS = 32  # lattice points per (source, wedge) pair that find where it can diffract (pilot)
 PILOT_BATCH = 1 << 22  # pilot points evaluated at once
-DEPARTURE_QUANTUM = 2.0**-7  # diffracted paths' departure directions (for beams and angles)
 SAMPLES_PER_BATCH_RAY = 4  # diffraction samples traced at once per lattice ray of a batch: a
 #                            sample's state is smaller than a ray's, and fewer launches cost less
 STRETCHES_PER_PAIR = 64  # the second pass resamples a pair's edge in runs of 1/64 of its samples
@@ -537,7 +536,7 @@ class DiffractionSampler:
         # departure directions on a 2**-7 grid of direction cosines (< 0.45 deg): the deposits of
         # neighbouring samples then share their beam factors (one evaluation per cell and direction,
         # one-pass _Accumulator._add_beams), which otherwise cost 25x the tracing with 64 beams
-        dd = dr.normalize(dr.round(dd * (1.0 / DEPARTURE_QUANTUM)) * DEPARTURE_QUANTUM)
+        dd = on_departure_grid(dd)
         n = dr.width(idx)
         e_out = RadioMapSolver._evaluate_radio_material_diffraction(
             None, mi.ShapePtr(wq.shape), wq, qq, kki, kko, [take(e_in)], sr, sp, dr.full(mi.Bool, True, n))[0]

@@ -207,8 +207,8 @@ class _Accumulator:
         else:  # a (cell, direction) group may recur in several sets: one group again
             g_cell, g_dkey, pg = _group_sums(*(np.concatenate(a) for a in zip(*self.beam_groups)), len(self.m.power))
         self.beam_groups = []
-        # many cells share a direction (diffracted paths: on DEPARTURE_QUANTUM's grid): evaluate
-        # each distinct direction once
+        # many cells share a direction (diffracted and diffuse paths: on DEPARTURE_QUANTUM's
+        # grid): evaluate each distinct direction once
         inverse, keys = pd.factorize(g_dkey, sort=False)
         mask = (1 << Q_BITS) - 1
         u = (np.stack([(keys >> (k * Q_BITS)) & mask for k in (2, 1, 0)], -1) - Q_OFFSET) * DIRECTION_QUANTUM

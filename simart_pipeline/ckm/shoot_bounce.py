@@ -68,6 +68,12 @@ from scipy.constants import epsilon_0
 Q_BITS = 15
 DIRECTION_QUANTUM = 2.0**-13
 Q_OFFSET = 1 << 13
+# A path whose departure is a ray's own launch direction (after a diffuse reflection or a
+# diffraction: no cell-centre correction applies) takes it on a coarser grid of 2**-7 in direction
+# cosines (< 0.45 deg, a thirtieth of an 8 x 8 half-wavelength array's beamwidth), so that
+# neighbouring rays share one beam factor: at 1e7 rays every ray's launch direction is distinct
+# on the 2**-13 grid, and their beam factors were most of a diffuse run's host time
+DEPARTURE_QUANTUM = 2.0**-7
 _GOLDEN_RATIO = (1.0 + 5.0**0.5) / 2.0
 _SPAWN_EPSILON = 89.0 * 2.0**-24  # Mitsuba's RayEpsilon for float32
 # Purposes of the per-ray random numbers (hashed with the lattice index and the depth)
@@ -189,6 +195,14 @@ def direction_terms(d_c, d_dep, rotation, with_beams: bool) -> dict:
             key = (key << Q_BITS) | q
         out["dkey"] = key
     return out
+
+
+def on_departure_grid(u):
+    """Unit directions ``u`` (Mitsuba Vector3f) moved to :data:`DEPARTURE_QUANTUM`'s grid of
+    direction cosines, unit length again."""
+    import drjit as dr
+
+    return dr.normalize(dr.round(u * (1.0 / DEPARTURE_QUANTUM)) * DEPARTURE_QUANTUM)
 
 
 def _material_tables(radio) -> tuple[np.ndarray, ...]:
@@ -979,8 +993,9 @@ class Tracer:
             new_im = dr.select(diff, out[1], new_im)
             new_d = dr.select(diff, ko, new_d)
             new_o = dr.select(diff, mi.Point3f(p + offset * n), new_o)
-            dep = [dr.dot(st[k], d) for k in ("m0", "m1", "m2")]  # the launch direction
-            m = [dr.select(diff, dk * ko, mk) for dk, mk in zip(dep, m)]
+            # the launch direction, from now on the path's departure (on the departure grid)
+            dep = on_departure_grid(mi.Vector3f(*(dr.dot(st[k], d) for k in ("m0", "m1", "m2"))))
+            m = [dr.select(diff, dep[i] * ko, mk) for i, mk in enumerate(m)]
             anchor = dr.select(diff, length, anchor)
         new = dict(o=new_o, d=new_d, e_re=new_re, e_im=new_im, length=length, m0=m[0], m1=m[1], m2=m[2],
                    idx=st["idx"], anchor=anchor, **extra, **{k: st[k] for k in _CARRIED if k in st})
@@ -1054,8 +1069,9 @@ class Tracer:
         r_c = dr.norm(v_c)
         d_c = v_c / dr.maximum(r_c, 1e-12)
         # the launch direction: the mirror product's transpose applied to the incoming direction
-        # (rank one after a diffuse bounce or a diffraction: the departure it carries)
-        d_dep = dr.normalize(mi.Vector3f(*(dr.dot(take(st[c]), dh) for c in ("m0", "m1", "m2"))))
+        # (rank one after a diffuse bounce or a diffraction: the departure it carries), on the
+        # departure grid as the scattered ray's own
+        d_dep = on_departure_grid(mi.Vector3f(*(dr.dot(take(st[c]), dh) for c in ("m0", "m1", "m2"))))
         out = dict(cell=dr.gather(mi.UInt32, nee["cell"], j), power=power, dist=take(length) + r_c)
         if "stretch" in st:
             out["stretch"] = take(st["stretch"])
