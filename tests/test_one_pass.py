@@ -462,6 +462,33 @@ def test_departure_grid_moves_a_direction_by_under_half_a_degree_and_shares_it_w
     assert len(np.unique(np.round(g * 2**20).astype(np.int64), axis=0)) < 0.3 * len(u)
 
 
+def test_a_dft_grid_of_beams_is_found_separable_and_its_factors_give_every_beam():
+    """An 8 x 8 DFT codebook on a planar half-wavelength array is the Kronecker product of 8 row
+    and 8 column factors; their powers' products are the beams' |w_b^T v(u)|^2 in any direction.
+    Random precoders, a linear array and an incomplete grid are not separable."""
+    lam = 0.1
+    yy, zz = np.meshgrid(np.arange(8) * lam / 2, np.arange(8) * lam / 2, indexing="ij")
+    pos = np.stack([np.full(64, 0.3), yy.ravel() - 0.1, zz.ravel() + 0.2], -1)  # y-z plane, any offset
+    cb = dft_codebook(pos, lam, 8, 8).weights
+    sep = op.separable_codebook(cb, pos)
+    assert sep is not None and sep["axes"] == [1, 2] and sep["a"].shape == (8, 8) and sep["c"].shape == (8, 8)
+    rng = np.random.default_rng(2)
+    u = rng.normal(size=(2000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    k = 2 * np.pi / lam
+    power = [np.abs(np.exp(1j * k * u[:, d, None] * x[None, :]) @ f) ** 2
+             for d, x, f in zip(sep["axes"], sep["coords"], (sep["a"], sep["c"]))]
+    got = power[0][:, sep["a_of_beam"]] * power[1][:, sep["c_of_beam"]] * sep["scale"]
+    want = np.abs(np.exp(1j * k * u @ pos.T) @ cb.T) ** 2
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9 * want.max())
+    np.testing.assert_allclose(op.beam_factors(cb, pos, u, k), want, rtol=1e-5, atol=1e-5 * want.max())
+    rand = rng.normal(size=cb.shape) + 1j * rng.normal(size=cb.shape)
+    assert op.separable_codebook(rand / np.linalg.norm(rand, axis=1, keepdims=True), pos) is None
+    line = np.stack([np.zeros(8), np.arange(8) * lam / 2, np.zeros(8)], -1)
+    assert op.separable_codebook(dft_codebook(line, lam, 1, 8).weights, line) is None
+    assert op.separable_codebook(cb[:, :63] / np.linalg.norm(cb[:, :63], axis=1, keepdims=True), pos[:63]) is None
+
+
 def test_one_loop_of_per_cell_sums_equals_a_bincount_per_moment():
     """The fused, GIL-free loop (``_accumulate_deposits``) against the numpy reference it replaced:
     one ``np.bincount`` per moment and ``np.minimum.at`` for the earliest delay, over two deposit
@@ -1177,14 +1204,21 @@ def _assert_device_sums_equal_host_sums(host, device):
     assert device.second_pass == host.second_pass
 
 
+@pytest.mark.parametrize("kronecker", [True, False], ids=["DFT codebook", "any codebook"])
 @pytest.mark.parametrize("sampled", [False, True], ids=["specular", "with diffuse reflection and refraction"])
-def test_sums_on_the_device_equal_the_host_sums(tmp_path, sampled):
+def test_sums_on_the_device_equal_the_host_sums(tmp_path, sampled, kronecker):
     """``accumulate_on_device`` (the GPU's path: scatter-adds into per-cell arrays, the beam
     factors per deposit, the footprints' lanes by prefix sums) on the LLVM device gives the host
-    accumulator's moments: two heights, several batches, a 2 x 2 codebook, reflections through
-    footprints, and with diffuse reflection and refraction the drawn interactions and the diffuse
-    hits' connections to cells (1.5 a hit: one, and a second drawn)."""
+    accumulator's moments: two heights, several batches, a 2 x 2 codebook (a DFT grid, whose beams
+    the device takes by their axes' factors, or random unit precoders, by their full products),
+    reflections through footprints, and with diffuse reflection and refraction the drawn
+    interactions and the diffuse hits' connections to cells (1.5 a hit: one, and a second drawn)."""
     args, cb = _ground_and_wall_run(tmp_path)
+    if not kronecker:
+        rng = np.random.default_rng(11)
+        cb = rng.normal(size=cb.shape) + 1j * rng.normal(size=cb.shape)
+        cb /= np.linalg.norm(cb, axis=1, keepdims=True)
+    assert (op.separable_codebook(cb, args[0].array_positions_m("tx")) is not None) == kronecker
     kw = dict(codebook=cb, batch_rays=30_011, diffuse_reflection=sampled, refraction=sampled,
               diffuse_connections=1.5 if sampled else 0.0)
     host = op.one_pass_moments(*args, accumulate_on_device=False, **kw)

@@ -297,6 +297,7 @@ class _DeviceAccumulator(_Accumulator):
             self.kpos = np.asarray(ant_positions_m, np.float64) * self.k  # rad/m x m: phase per unit direction
             w = np.asarray(codebook, np.complex64).ravel()  # [beam, antenna], row-major
             self.d_codebook = (mi.Float(w.real.copy()), mi.Float(w.imag.copy()))
+            self.separable = separable_codebook(codebook, ant_positions_m)
 
     def __call__(self, dep: dict, line_of_sight: bool) -> None:
         dr, mi = self.dr, self.mi
@@ -335,6 +336,9 @@ class _DeviceAccumulator(_Accumulator):
              for k in (2, 1, 0)]
         inv = dr.rsqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
         u = [c * inv for c in u]
+        if self.separable is not None:
+            self._add_separable_beam_powers(cell, p, u)
+            return
         v = [dr.sincos(u[0] * float(q[0]) + u[1] * float(q[1]) + u[2] * float(q[2])) for q in self.kpos]
         num_beams, num_ant = self.num_beams, len(v)
         w_re, w_im = self.d_codebook
@@ -350,6 +354,31 @@ class _DeviceAccumulator(_Accumulator):
             return (b + 1,)
 
         dr.while_loop(state=(dr.zeros(mi.UInt32, dr.width(p)),), cond=lambda b: b < num_beams, body=body)
+
+    def _add_separable_beam_powers(self, cell, p, u) -> None:
+        """:meth:`_add_beam_powers` for a Kronecker codebook (:func:`separable_codebook`): per
+        deposit the distinct factors' powers along each axis, ``|a_k^T v_x|^2`` and ``|c_k^T
+        v_y|^2`` (``n1 + n2`` phases), and each beam their product times ``s_b^2``. An 8 x 8 DFT
+        grid: 16 phases and 16 eight-term sums instead of 64 phases and 64 x 64 products per
+        deposit (on an H200 the looped form was half of the one-pass's kernel time)."""
+        dr, mi = self.dr, self.mi
+        sep = self.separable
+        powers = []
+        for d, x, f in zip(sep["axes"], sep["coords"], (sep["a"], sep["c"])):
+            v = [dr.sincos(u[d] * float(self.k * xi)) for xi in x]
+            axis = []
+            for k in range(f.shape[1]):
+                y_re, y_im = mi.Float(0.0), mi.Float(0.0)
+                for (v_im, v_re), w in zip(v, f[:, k]):
+                    a, c = float(w.real), float(w.imag)
+                    y_re = dr.fma(v_re, a, dr.fma(v_im, -c, y_re))
+                    y_im = dr.fma(v_re, c, dr.fma(v_im, a, y_im))
+                axis.append(y_re * y_re + y_im * y_im)
+            powers.append(axis)
+        first = cell * self.num_beams
+        for b in range(self.num_beams):
+            g = powers[0][sep["a_of_beam"][b]] * powers[1][sep["c_of_beam"][b]] * float(sep["scale"][b])
+            dr.scatter_reduce(dr.ReduceOp.Add, self.d_beams, p * mi.Float64(g), first + b)
 
     def summed(self) -> CellMoments:
         """The device sums added into the host's (then zeroed on the device), as
@@ -480,6 +509,54 @@ def beam_factors(codebook: np.ndarray, ant_positions_m: np.ndarray, directions: 
         v.real, v.imag = np.cos(phase), np.sin(phase)
         y = v @ w
         out[lo:lo + len(y)] = y.real.astype(np.float64) ** 2 + y.imag.astype(np.float64) ** 2
+    return out
+
+
+SEPARABLE_RANK_TOLERANCE = 1e-6  # a beam is a Kronecker product where its second singular value is below this share
+
+
+def separable_codebook(codebook: np.ndarray, ant_positions_m: np.ndarray) -> dict | None:
+    """A codebook whose every beam is the Kronecker product of weights along the two axes of a
+    full planar grid of elements (``w_b[i, j] = a_b[i] c_b[j]``, element ``(i, j)`` at ``x_i``
+    along one axis and ``y_j`` along the other, the third coordinate the same for all), as its
+    factors: ``|w_b^T v(u)|^2 = s_b^2 |a_b^T v_x(u)|^2 |c_b^T v_y(u)|^2`` (unit ``a_b``, ``c_b``;
+    the third coordinate's phase is common to all elements). The distinct ``a`` and ``c`` (up to
+    a phase) are kept once: a DFT grid of 8 x 8 beams has 8 of each. Keys: ``axes`` (the two
+    varying coordinates), ``coords`` (their element positions, m), ``a`` ``[n1, K1]`` and ``c``
+    ``[n2, K2]`` (complex), ``a_of_beam`` / ``c_of_beam`` (each beam's factors), ``scale``
+    (``s_b^2``). None for any other codebook or array."""
+    w = np.asarray(codebook, np.complex128)
+    pos = np.asarray(ant_positions_m, np.float64)
+    if w.ndim != 2 or pos.shape != (w.shape[1], 3) or w.shape[1] < 4:
+        return None
+    span = np.ptp(pos, axis=0)
+    tol = 1e-9 * max(float(span.max()), 1e-12)
+    axes = [d for d in range(3) if span[d] > tol]
+    if len(axes) != 2:
+        return None
+    coords, index = [], []
+    for d in axes:
+        _, first, inv = np.unique(np.round(pos[:, d] / tol), return_index=True, return_inverse=True)
+        coords.append(pos[first, d])
+        index.append(inv.ravel())
+    n1, n2 = len(coords[0]), len(coords[1])
+    if n1 * n2 != w.shape[1] or len(np.unique(index[0] * n2 + index[1])) != w.shape[1]:
+        return None  # not a full grid
+    grid = np.zeros((w.shape[0], n1, n2), np.complex128)
+    grid[:, index[0], index[1]] = w
+    u, sv, vh = np.linalg.svd(grid)
+    if np.any(sv[:, 1] > SEPARABLE_RANK_TOLERANCE * np.maximum(sv[:, 0], 1e-300)):
+        return None
+    out = {"axes": axes, "coords": coords, "scale": sv[:, 0] ** 2}
+    for name, f in (("a", u[:, :, 0]), ("c", vh[:, 0, :])):
+        # a common phase does not change |.|^2: each factor's first element of at least half the
+        # largest magnitude made real (not the largest: a DFT beam's are equal up to rounding)
+        mag = np.abs(f)
+        ref = f[np.arange(len(f)), np.argmax(mag >= 0.5 * mag.max(axis=1, keepdims=True), axis=1)]
+        f = f * (np.abs(ref) / ref)[:, None]
+        key = np.round(np.concatenate([f.real, f.imag], axis=1) * 1e7).astype(np.int64)
+        _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
+        out[name], out[name + "_of_beam"] = f[first].T, inv.ravel()
     return out
 
 
