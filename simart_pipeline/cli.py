@@ -12,6 +12,7 @@ import contextlib
 import gc
 import os
 import shutil
+import socket
 import subprocess
 import sys
 import time
@@ -169,6 +170,45 @@ def _scene_on_instance(scene_dir, data_root, weathers, tiles, instance):
     return cfg, weathers, tiles, instance
 
 
+# the process and machine of each run `simart run` starts, so that the next one can tell a run
+# whose process was killed from one still going
+RUN_PID_TAG, RUN_HOST_TAG = "simart/pid", "simart/host"
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process: alive
+        return True
+    return True
+
+
+def release_dead_runs(instance) -> list[str]:
+    """Runs that ``simart run`` started on this machine in a process that is gone (killed
+    mid-run): their op concurrency slots (the ``raytracing`` and ``rendering`` pools of
+    dagster.yaml, one op at a time) are freed and the runs marked failed. Dagster frees a slot when
+    the op ends; a killed process never ends it, and the next run's op in that pool waited for it
+    for ever. Runs launched from the UI (no such tags) and live processes are left alone. Returns
+    the runs released."""
+    import dagster as dg
+
+    live = (dg.DagsterRunStatus.NOT_STARTED, dg.DagsterRunStatus.STARTING, dg.DagsterRunStatus.STARTED)
+    runs = instance.get_runs(filters=dg.RunsFilter(statuses=list(live), tags={RUN_HOST_TAG: socket.gethostname()}))
+    released = []
+    for run in runs:
+        pid = run.tags.get(RUN_PID_TAG)
+        if pid is None or not pid.isdigit() or int(pid) == os.getpid() or _process_alive(int(pid)):
+            continue
+        if instance.event_log_storage.supports_global_concurrency_limits:
+            instance.event_log_storage.free_concurrency_slots_for_run(run.run_id)
+        instance.report_run_failed(run, message=f"simart run process {pid} ended before the run did (killed?); "
+                                                 f"its concurrency slots were freed by the next simart run")
+        released.append(run.run_id)
+    return released
+
+
 @contextlib.contextmanager
 def _collector_off_libraries():
     """The libraries' objects (Dagster, Sionna, Mitsuba: millions) live as long as the process: out
@@ -195,6 +235,8 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
     from simart_pipeline.definitions import build_definitions
 
     cfg, weathers, tiles, instance = _scene_on_instance(scene_dir, data_root, weathers, tiles, instance)
+    for run_id in release_dead_runs(instance):
+        progress(f"run {run_id}: its process is gone (killed?); marked failed, its concurrency slots freed")
     defs = build_definitions(data_root=str(data_root))
     resources = defs.resources
     plan = resources["project"].version_plan(cfg.name)
@@ -221,9 +263,11 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
                 progress(f"[{done + i + 1:>2}/{total}] {name} ({label}): {status}")
             if stale:
                 t0 = time.perf_counter()
+                tags = {RUN_PID_TAG: str(os.getpid()), RUN_HOST_TAG: socket.gethostname(),
+                        **({FORCE_TAG: "true"} if force else {})}
                 result = dg.materialize([*ALL_ASSETS, *ALL_CHECKS], selection=list(stale), partition_key=key,
                                         instance=instance, resources=resources, run_config=run_config,
-                                        raise_on_error=False, tags={FORCE_TAG: "true"} if force else None)
+                                        raise_on_error=False, tags=tags)
                 if not result.success:
                     raise _failure(result, label)
                 # A run's outputs (a weather's rendered frames: gigabytes) hang in reference cycles of

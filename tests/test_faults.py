@@ -413,6 +413,48 @@ def test_a_killed_simart_run_is_completed_by_the_next(tmp_path):
     assert "computing" in r.stdout  # the kill left work to do
 
 
+def test_a_killed_runs_pool_slot_is_freed_by_the_next_run_and_a_live_ones_is_not(tmp_path):
+    """A run whose `simart run` process was killed inside an op of a pool (dagster.yaml: one
+    'raytracing' op at a time) keeps its slot for ever; the next `simart run` frees it and marks
+    the run failed. A run of a live process, or one launched from the UI (no process tags), keeps
+    its slot."""
+    import socket
+
+    import dagster as dg
+
+    from simart_pipeline import cli
+
+    home = tmp_path / "home"
+    home.mkdir()
+    (home / "dagster.yaml").write_text((REPO / "dagster.yaml").read_text())
+    instance = dg.DagsterInstance.from_config(str(home))
+    storage = instance.event_log_storage
+    assert storage.supports_global_concurrency_limits
+    storage.set_concurrency_slots("raytracing", 3)
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()  # a pid that no longer runs
+    host = socket.gethostname()
+    runs = {}
+    for name, tags in (("killed", {cli.RUN_PID_TAG: str(dead.pid), cli.RUN_HOST_TAG: host}),
+                       ("live", {cli.RUN_PID_TAG: str(os.getppid()), cli.RUN_HOST_TAG: host}),
+                       ("ui", {})):
+        run = instance.create_run_for_job(dg.GraphDefinition(name=f"job_{name}").to_job(), tags=tags)
+        instance.handle_run_event(run.run_id, dg.DagsterEvent(
+            event_type_value=dg.DagsterEventType.RUN_START.value, job_name=run.job_name))
+        status = storage.claim_concurrency_slot("raytracing", run.run_id, "step")
+        assert status.is_claimed, name
+        runs[name] = run.run_id
+    assert storage.get_concurrency_info("raytracing").active_slot_count == 3
+    assert cli.release_dead_runs(instance) == [runs["killed"]]
+    info = storage.get_concurrency_info("raytracing")
+    assert info.active_slot_count == 2 and runs["killed"] not in info.active_run_ids
+    assert instance.get_run_by_id(runs["killed"]).status == dg.DagsterRunStatus.FAILURE
+    for name in ("live", "ui"):
+        assert instance.get_run_by_id(runs[name]).status == dg.DagsterRunStatus.STARTED, name
+    assert cli.release_dead_runs(instance) == []  # once
+    instance.dispose()
+
+
 def test_a_tile_rewrite_removes_only_its_own_partial_chunks(tmp_path):
     """A killed writer's ``.partial`` chunk files are found by each array's own dims: a layer with a
     beam dim after x keeps another tile's file (a live writer's, perhaps) whose name and folder look
