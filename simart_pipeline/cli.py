@@ -175,16 +175,6 @@ def _scene_on_instance(scene_dir, data_root, weathers, tiles, instance):
 RUN_PID_TAG, RUN_HOST_TAG = "simart/pid", "simart/host"
 
 
-def _process_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # someone else's process: alive
-        return True
-    return True
-
-
 def release_dead_runs(instance) -> list[str]:
     """Runs that ``simart run`` started on this machine in a process that is gone (killed
     mid-run): their op concurrency slots (the ``raytracing`` and ``rendering`` pools of
@@ -194,12 +184,14 @@ def release_dead_runs(instance) -> list[str]:
     the runs released."""
     import dagster as dg
 
+    from simart_pipeline.stores import process_alive
+
     live = (dg.DagsterRunStatus.NOT_STARTED, dg.DagsterRunStatus.STARTING, dg.DagsterRunStatus.STARTED)
     runs = instance.get_runs(filters=dg.RunsFilter(statuses=list(live), tags={RUN_HOST_TAG: socket.gethostname()}))
     released = []
     for run in runs:
         pid = run.tags.get(RUN_PID_TAG)
-        if pid is None or not pid.isdigit() or int(pid) == os.getpid() or _process_alive(int(pid)):
+        if pid is None or not pid.isdigit() or process_alive(int(pid)):
             continue
         if instance.event_log_storage.supports_global_concurrency_limits:
             instance.event_log_storage.free_concurrency_slots_for_run(run.run_id)

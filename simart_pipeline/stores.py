@@ -109,7 +109,9 @@ def _temp_name(path: Path, kind: str) -> Path:
     return path.with_name(f".{path.name}.{kind}-{_HOST}-{os.getpid()}-{uuid.uuid4().hex[:8]}")
 
 
-def _writer_alive(pid: int) -> bool:
+def process_alive(pid: int) -> bool:
+    """Whether process ``pid`` of this host still runs (this process counts as alive): the
+    writer of a temporary, or the process of a run (``cli.release_dead_runs``)."""
     if pid == os.getpid():
         return True
     try:
@@ -131,7 +133,7 @@ def _dead_temporaries(path: Path) -> list[tuple[str, Path]]:
         return out
     for p in entries:
         m = _TEMP.match(p.name)
-        if m and m["name"] == path.name and m["host"] == _HOST and not _writer_alive(int(m["pid"])):
+        if m and m["name"] == path.name and m["host"] == _HOST and not process_alive(int(m["pid"])):
             out.append((m["kind"], p))
     return out
 

@@ -294,10 +294,11 @@ class _DeviceAccumulator(_Accumulator):
         self.num_beams = 0 if codebook is None else codebook.shape[0]
         if self.num_beams:
             self.d_beams = dr.zeros(mi.Float64, n * self.num_beams)
-            self.kpos = np.asarray(ant_positions_m, np.float64) * self.k  # rad/m x m: phase per unit direction
-            w = np.asarray(codebook, np.complex64).ravel()  # [beam, antenna], row-major
-            self.d_codebook = (mi.Float(w.real.copy()), mi.Float(w.imag.copy()))
             self.separable = separable_codebook(codebook, ant_positions_m)
+            if self.separable is None:  # the looped form's phases and weights
+                self.kpos = np.asarray(ant_positions_m, np.float64) * self.k  # rad/m x m: phase per unit direction
+                w = np.asarray(codebook, np.complex64).ravel()  # [beam, antenna], row-major
+                self.d_codebook = (mi.Float(w.real.copy()), mi.Float(w.imag.copy()))
 
     def __call__(self, dep: dict, line_of_sight: bool) -> None:
         dr, mi = self.dr, self.mi
