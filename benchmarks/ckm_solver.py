@@ -170,11 +170,12 @@ RADIO_MAP_DEFAULT_SAMPLES = 10**6  # RadioMapSolver's own default samples_per_tx
 MAX_POINT_S = 300.0  # a ray count predicted to take longer than this (one solver call) is not run
 WARM_REPEATS = 2  # los_specular: timed calls (best kept) at up to the main ray count; above it, one
 
-# The ray_tracing switches of each mechanism set (the rest: RayTracing's defaults, LoS + specular).
+# The ray_tracing switches of each mechanism set (LoS and specular reflection: RayTracing's
+# defaults; the others named in every set, since the defaults turn diffraction on).
 SWITCHES = ("los", "specular_reflection", "diffraction", "edge_diffraction", "diffuse_reflection", "refraction")
 MECHANISM_SETS = {
-    "los_specular": {},
-    "diffraction": {"diffraction": True},
+    "los_specular": {"diffraction": False, "edge_diffraction": False, "diffuse_reflection": False},
+    "diffraction": {"diffraction": True, "edge_diffraction": False, "diffuse_reflection": False},
     "all": {"diffraction": True, "edge_diffraction": True, "diffuse_reflection": True, "refraction": True},
 }
 SET_LABELS = {"los_specular": "LoS + specular", "diffraction": "+ wedge diffraction",

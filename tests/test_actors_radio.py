@@ -8,6 +8,7 @@ import pytest
 import scipy.constants as const
 import trimesh
 
+from conftest import LOS_SPECULAR
 from simart_pipeline.config import SceneConfig
 from simart_pipeline.mobility.trajectory import build_trajectory, poses_at
 from simart_pipeline.radio import cirs as radio_cirs
@@ -26,7 +27,7 @@ def config(platforms, static_actors=(), bs_at=(0.0, 0.0, 1.0), **rt) -> SceneCon
         "base_stations": [{"name": "bs0", "position_m": list(bs_at), "array": ISO}],
         "platforms": [dict(p, array=ISO) for p in platforms], "static_actors": list(static_actors),
         "clock": {"duration_s": 1.0, "radio_rate_hz": 4.0},
-        "ray_tracing": {"max_depth": 1, "samples_per_src": 100_000, **rt}})
+        "ray_tracing": {"max_depth": 1, "samples_per_src": 100_000, **LOS_SPECULAR, **rt}})
 
 
 def trace(cfg, scene_dir=None):

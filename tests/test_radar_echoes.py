@@ -8,6 +8,7 @@ import pytest
 import scipy.constants as const
 import trimesh
 
+from conftest import LOS_SPECULAR
 from simart_pipeline import clock
 from simart_pipeline.config import SceneConfig
 from simart_pipeline.mobility.trajectory import build_trajectory, poses_at
@@ -35,7 +36,7 @@ def test_plate_echo_at_range_and_speed_with_radar_equation_power(tmp_path):
                                 "scattering_coefficient": 0.0},
                        "trajectory": {"waypoints_m": [[60.0, 0.0, 20.0], [200.0, 0.0, 20.0]], "speed_mps": 12.0,
                                       "follow_roads": False}}],
-        "clock": {"duration_s": 1.5}, "ray_tracing": {"max_depth": 1, "samples_per_src": 100_000}})
+        "clock": {"duration_s": 1.5}, "ray_tracing": {"max_depth": 1, "samples_per_src": 100_000, **LOS_SPECULAR}})
     radio = radar_echoes.radar_scene(None, cfg, "sunny")
     radio.add_actors(actors.scene_actors(cfg, tmp_path))
     traj = build_trajectory(cfg)
@@ -87,7 +88,7 @@ def test_a_car_echoes_by_diffuse_scattering_at_its_range_and_radial_velocity():
         "platforms": [{"name": "car", "kind": "ground_vehicle", "array": ISO,
                        "trajectory": {"waypoints_m": [[60.0, 0.0, 1.5], [200.0, 0.0, 1.5]], "speed_mps": 12.0,
                                       "follow_roads": False}}],
-        "clock": {"duration_s": 1.5}, "ray_tracing": {"max_depth": 1, "samples_per_src": 1_000_000}})
+        "clock": {"duration_s": 1.5}, "ray_tracing": {"max_depth": 1, "samples_per_src": 1_000_000, **LOS_SPECULAR}})
     radio = radar_echoes.radar_scene(None, cfg, "sunny")
     car = actors.scene_actors(cfg, None)
     radio.add_actors(car)
