@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from benchmarks import bench
-from benchmarks.raytracing_front import dominance, pareto_front, sweep_settings
+from benchmarks.raytracing_front import dominance, pareto_front, same_result_times, sweep_settings
 from simart_pipeline import cli
 from simart_pipeline.config import RayTracing
 
@@ -25,6 +25,19 @@ def test_pareto_front_of_known_points():
     t = [1.0, 2.0, 4.0, 3.0, 4.0, 0.5]
     e = [3.0, 1.0, 0.0, 2.0, 0.0, np.nan]
     assert pareto_front(t, e) == [0, 1, 2, 4]
+
+
+def test_settings_with_the_same_result_are_one_point_on_the_front():
+    # B computes A's paths (a mechanism that changes nothing here) and was timed faster by noise:
+    # with its own time it would push A off the front; as one point both stay on it, and C, as
+    # accurate but slower than both, does not
+    t, res = [1.00, 0.94, 1.20, 0.50], ["a", "a", "c", "d"]
+    e = [2.0, 2.0, 2.0, 5.0]
+    assert 0 not in pareto_front(t, e)
+    merged = same_result_times(t, res)
+    assert merged == [0.94, 0.94, 1.20, 0.50]
+    assert pareto_front(merged, e) == [3, 0, 1]
+    assert dominance(merged, e, 0)["on_front"] is True
 
 
 def test_pareto_front_staircase_analytic():
