@@ -340,8 +340,8 @@ def run(extract: Path, quick: bool, num_rx: int, num_rays: int, log=print) -> di
     tx, ori, rx, gx, gy = placement(geom, num_rx)
     visual_all = trimesh.util.concatenate(list(visual.values()))
     # LoS and specular reflection, as this benchmark has measured since it was written (the
-    # config's default adds diffraction): its figures stay comparable
-    solver = RayTracing(max_depth=MAX_DEPTH, diffraction=False, edge_diffraction=False)
+    # config's default adds diffraction and refraction): its figures stay comparable
+    solver = RayTracing(max_depth=MAX_DEPTH, diffraction=False, edge_diffraction=False, refraction=False)
     kw = dict(frequency_hz=FREQUENCY_HZ, bandwidth_hz=BANDWIDTH_HZ,
               tx_array=Array(rows=8, cols=8, pattern="tr38901"), rx_array=Array(pattern="iso", polarization="V"),
               solver=solver, material_thickness_m=THICKNESS_M)

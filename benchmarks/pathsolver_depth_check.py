@@ -31,8 +31,8 @@ def paths_at(depth: int) -> list[tuple[tuple[int, ...], float, list]]:
 
     iso = Array(rows=1, cols=1, pattern="iso", polarization="V")
     radio = RadioScene(rt.scene.simple_street_canyon, frequency_hz=3.5e9, bandwidth_hz=20e6, tx_array=iso,
-                       rx_array=iso, solver=RayTracing(diffraction=True, edge_diffraction=False, max_depth=depth,
-                                                         samples_per_src=10**6))
+                       rx_array=iso, solver=RayTracing(diffraction=True, edge_diffraction=False, refraction=False,
+                                                         max_depth=depth, samples_per_src=10**6))
     radio.scene.edit(remove=[o for o in list(radio.scene.objects) if o not in ("building_4", "floor")])
     radio.scene.objects["floor"].radio_material = rt.ITURadioMaterial("floor_metal", "metal", thickness=0.1)
     p = radio.trace(np.array([TX_M]), np.zeros((1, 3)), np.array([RX_M]), with_vertices=True)

@@ -6,10 +6,10 @@ import pytest
 TESTS = Path(__file__).resolve().parent
 REPO = TESTS.parent
 SHARED_DATA = REPO.parent / "shared" / "data"
-# LoS and specular reflection alone (diffraction is on by default): the ray-tracing settings of a
+# LoS and specular reflection alone (diffraction and refraction are on by default): the settings of a
 # test whose closed form counts those paths (two-ray ground, a plate's echo); a finite ground or
 # plate also diffracts at its edges
-LOS_SPECULAR = {"diffraction": False, "edge_diffraction": False}
+LOS_SPECULAR = {"diffraction": False, "edge_diffraction": False, "refraction": False}
 
 
 @pytest.fixture(scope="session")

@@ -63,7 +63,7 @@ def test_sweep_flips_each_mechanism_and_references_the_most_expensive():
     settings, ref = sweep_settings(default, quick=True)
     assert settings[0]["group"] == "default" and settings[0]["samples_per_src"] == default.samples_per_src
     mech = {s["label"] for s in settings if s["group"] == "mechanism"}
-    assert mech == {"specular reflection off", "diffuse reflection on", "refraction on", "diffraction off"}
+    assert mech == {"specular reflection off", "diffuse reflection on", "refraction off", "diffraction off"}
     assert ref["samples_per_src"] == max(s["samples_per_src"] for s in settings)
     assert ref["max_depth"] == max(s["max_depth"] for s in settings)
     assert all(ref[m] for m in ("specular_reflection", "diffuse_reflection", "refraction", "diffraction"))

@@ -94,14 +94,16 @@ class RayTracing(_Model):
     los: bool = True
     specular_reflection: bool = True
     diffuse_reflection: bool = False
-    refraction: bool = False
-    # Diffraction is on by default because the run-time/error front chose it (benchmarks/
-    # raytracing_front, docs/ray-tracing.md): LoS and specular reflection alone leave 12 of the
-    # demo's 80 links without a path and 27 / 39 % of its outdoor CKM cells without a value from
-    # one station or the other (shadowed streets); wedge and edge diffraction reach every link and
-    # cell for 1.34x the trace time, on the front. Diffuse reflection needs materials that scatter
-    # (Sionna's ITU materials do not); refraction alone reaches those links too, without their
-    # diffracted power (path gain p95 18 dB off, against 6.4 with diffraction).
+    # Diffraction and refraction are on by default because the run-time/error front chose them
+    # (benchmarks/raytracing_front, docs/ray-tracing.md): LoS and specular reflection alone leave 12
+    # of the demo's 80 links without a path and 27 / 39 % of its outdoor CKM cells without a value
+    # from one station or the other (shadowed streets); wedge and edge diffraction reach every link
+    # and cell for 1.34x the trace time. Refraction (transmission through walls and windows of
+    # Sionna's ITU materials) carries much of the power behind buildings: without it the one-pass
+    # CKM is 7.9 dB low in the median cell of the street canyon and 27 dB off at p95 on Munich, for
+    # 1.2-2x the CKM's trace time (docs/ckm-one-pass.md, "Session 28"). Diffuse reflection needs
+    # materials that scatter (Sionna's ITU materials do not).
+    refraction: bool = True
     diffraction: bool = True
     edge_diffraction: bool = True
     seed: int = 42
