@@ -77,6 +77,31 @@ def test_cell_layers_zero_one_many_paths_finite_nonnegative_and_order_free(n, se
         assert a["rms_delay_spread_s"][0] >= 0.0
 
 
+@BOUNDED
+@given(st.integers(1, 300), st.integers(1, 64), st.integers(0, 2**32 - 1))
+def test_cell_moments_do_not_depend_on_the_invalid_paths_that_pad_a_row(n, pad, seed):
+    """A PathSolver call pads every receiver's row of paths to the call's longest (with invalid
+    entries), so a CKM cell's row length depends on the receivers traced beside it. The moments
+    are the same bits with any padding after the valid paths (mutant: numpy's pairwise ``sum``,
+    whose grouping follows the row length, moved the last bit of a cell's delay spread)."""
+    from dataclasses import fields
+
+    rng = np.random.default_rng(seed)
+    m = n + pad
+    power = 10.0 ** (rng.uniform(-200.0, 0.0, (2, m)) / 10.0)
+    delay = rng.uniform(1e-9, 2e-6, (2, m))
+    valid = np.zeros((2, m), bool)
+    valid[:, :n] = True
+    los = rng.random((2, m)) < 0.1
+    ang = rng.uniform(-np.pi, np.pi, (2, m, 4))
+    beam = rng.uniform(0.0, 1.0, (2, m, 8))
+    tau0 = np.full(2, 1e-9)
+    a = path_moments(power[:, :n], delay[:, :n], valid[:, :n], los[:, :n], ang[:, :n], tau0, beam[:, :n])
+    b = path_moments(power, delay, valid, los, ang, tau0, beam)
+    for f in fields(a):
+        np.testing.assert_array_equal(getattr(a, f.name), getattr(b, f.name), err_msg=f.name)
+
+
 # --- channel frequency response, free space, noise, materials, grids, meshes, MCS -------------
 
 FC_HZ = st.floats(1.01e8, 9.9e11)  # the config's carrier range (config.radio: 1e8 < f < 1e12)

@@ -406,6 +406,52 @@ def test_a_duplicate_path_counts_once_and_a_near_equal_distinct_one_is_kept():
     assert np.sum(np.abs(out["a"][0, 0, 0, 0]) ** 2) == 3
 
 
+def test_paths_come_out_in_one_order_whatever_order_the_solver_returned_them_in():
+    """Sionna's candidate generator appends candidates through an atomic counter, so on several
+    threads two runs can return the same paths in another order. Paths of equal delay and
+    interaction types (a symmetric scene's two wedges, two scatter points at equal range) are
+    told apart by their object and primitive sequences, then their vertices: any permutation of a
+    link's paths sorts to the same arrays, bit for bit, and the moments summed over them agree
+    bit for bit too. Mutant: without the object / primitive / vertex keys the tied paths keep
+    the solver's order and this test fails."""
+    from simart_pipeline.ckm.moments import path_moments
+    from simart_pipeline.radio.tracer import _ordered
+
+    rng = np.random.default_rng(11)
+    num_rx, num_tx, depth, n = 2, 2, 3, 40
+    tau = np.round(rng.uniform(1e-7, 3e-7, (num_rx, num_tx, n)), 8).astype(np.float32)  # many equal delays
+    inter = rng.choice(np.array([0, 1, 8], np.uint8), (num_rx, num_tx, depth, n))
+    inter[:, :, 1:] = 0
+    obj = rng.integers(0, 3, (num_rx, num_tx, depth, n)).astype(np.uint32)
+    prim = rng.integers(0, 3, (num_rx, num_tx, depth, n)).astype(np.uint32)
+    vert = rng.normal(size=(num_rx, num_tx, depth, n, 3)).astype(np.float32)
+    vert[..., 1:, :, :] = np.nan  # unused depths
+    valid = rng.random((num_rx, num_tx, n)) > 0.1
+    a = (rng.normal(size=(num_rx, 1, num_tx, 1, n)) + 1j * rng.normal(size=(num_rx, 1, num_tx, 1, n))).astype(np.complex64)
+    angles = {k: rng.uniform(0, 3, (num_rx, num_tx, n)).astype(np.float32)
+              for k in ("theta_t", "phi_t", "theta_r", "phi_r", "doppler_hz")}
+    d = dict(valid=valid, tau_s=tau, interaction=inter, objects=obj, primitives=prim, vertices_m=vert, a=a, **angles)
+    ref = _ordered(d)
+    t = np.where(ref["valid"], ref["tau_s"], np.inf)
+    assert (t[..., 1:] >= t[..., :-1]).all() and (ref["valid"].sum(-1) == valid.sum(-1)).all()
+    for seed in range(5):
+        perm = np.random.default_rng(seed).permutation(n)
+        shuffled = {k: v[..., perm, :] if k == "vertices_m" else v[..., perm] for k, v in d.items()}
+        out = _ordered(shuffled)
+        for k in ref:
+            np.testing.assert_array_equal(out[k], ref[k], err_msg=k)
+        power = np.abs(out["a"][:, 0, :, 0, :]).astype(np.float64) ** 2
+        m_out = path_moments(power, out["tau_s"], out["valid"], out["valid"] & False,
+                             np.stack([out[k] for k in ("phi_r", "theta_r", "phi_t", "theta_t")], -1),
+                             np.zeros((num_rx, num_tx)))
+        power_ref = np.abs(ref["a"][:, 0, :, 0, :]).astype(np.float64) ** 2
+        m_ref = path_moments(power_ref, ref["tau_s"], ref["valid"], ref["valid"] & False,
+                             np.stack([ref[k] for k in ("phi_r", "theta_r", "phi_t", "theta_t")], -1),
+                             np.zeros((num_rx, num_tx)))
+        for f in ("power", "p_excess_delay_s", "p_excess_delay2_s2", "p_cos", "power_sq"):
+            np.testing.assert_array_equal(getattr(m_out, f), getattr(m_ref, f), err_msg=f)
+
+
 def _duplicates_by_every_pair(valid, inter, obj, prim, vert, tolerance_m):
     """The definition of drop_duplicate_paths' rule, pair by pair: a path repeats one kept before
     it with the same id sequences and every vertex coordinate within the tolerance."""

@@ -119,7 +119,7 @@ def reference_moments(radio, cfg: SceneConfig, points: np.ndarray, weights: np.n
                          p.valid.transpose(1, 0, 2), p.los.transpose(1, 0, 2),
                          angles.transpose(1, 0, 2, 3), tau0.T, beam.transpose(1, 0, 2, 3))
     phase = np.exp(-2j * np.pi * cfg.ofdm.carrier_frequency_hz * np.where(p.valid, p.tau_s, 0.0))
-    h = np.sum(a * phase[:, None, :, None, :], axis=-1)     # [N, r, B, n]
+    h = mom.path_sum(a * phase[:, None, :, None, :])        # [N, r, B, n]
     coherent = np.mean(np.abs(h) ** 2, axis=(1, 3)).T        # [B, N]
     return m, coherent
 

@@ -83,6 +83,16 @@ class CellMoments:
         return CellMoments(**out)
 
 
+def path_sum(x: np.ndarray, axis: int = -1) -> np.ndarray:
+    """Sum over a path axis one term after another, in path order: the same bits whatever
+    invalid (zero) paths pad the row after its valid ones. numpy's pairwise sum groups the terms
+    by the axis length, and a call's rows are padded to its receiver with the most paths, so a CKM
+    cell's sums moved by an ulp with the receivers traced beside it (the tiling)."""
+    if x.shape[axis] == 0:
+        return np.sum(x, axis=axis)
+    return np.take(np.cumsum(x, axis=axis), -1, axis=axis)
+
+
 def path_moments(power: np.ndarray, delay_s: np.ndarray, valid: np.ndarray, los: np.ndarray,
                  angles_rad: np.ndarray, tau0_s: np.ndarray,
                  beam_power: np.ndarray | None = None) -> CellMoments:
@@ -96,14 +106,14 @@ def path_moments(power: np.ndarray, delay_s: np.ndarray, valid: np.ndarray, los:
     dtau = np.where(valid, delay_s - tau0_s[..., None], 0.0)
     ang = np.asarray(angles_rad, np.float64)
     return CellMoments(
-        power=p.sum(-1), los_power=np.where(los & valid, p, 0.0).sum(-1),
+        power=path_sum(p), los_power=path_sum(np.where(los & valid, p, 0.0)),
         count=valid.sum(-1).astype(np.int64),
         min_delay_s=np.min(np.where(valid, delay_s, np.inf), axis=-1, initial=np.inf),
-        tau0_s=np.asarray(tau0_s, np.float64), p_excess_delay_s=(p * dtau).sum(-1),
-        p_excess_delay2_s2=(p * dtau**2).sum(-1),
-        p_cos=(p[..., None] * np.cos(ang)).sum(-2), p_sin=(p[..., None] * np.sin(ang)).sum(-2),
-        beam_power=None if beam_power is None else (np.where(valid[..., None], beam_power, 0.0)).sum(-2),
-        power_sq=(p * p).sum(-1))
+        tau0_s=np.asarray(tau0_s, np.float64), p_excess_delay_s=path_sum(p * dtau),
+        p_excess_delay2_s2=path_sum(p * dtau**2),
+        p_cos=path_sum(p[..., None] * np.cos(ang), -2), p_sin=path_sum(p[..., None] * np.sin(ang), -2),
+        beam_power=None if beam_power is None else path_sum(np.where(valid[..., None], beam_power, 0.0), -2),
+        power_sq=path_sum(p * p))
 
 
 def too_few_for_power(m: CellMoments, min_count_for_power: int = 1,

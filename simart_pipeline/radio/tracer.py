@@ -590,12 +590,26 @@ def _concat(chunks: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
 
 
 def _ordered(d: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Per (receiver, transmitter): valid first, then by delay, then by interaction sequence."""
+    """Per (receiver, transmitter): valid first, then by delay, then by interaction sequence, and
+    where those tie by object and primitive sequences and vertices (where ``d`` has them), so the
+    order does not depend on the order the solver returned the paths in. Sionna's candidate
+    generator appends candidates through an atomic counter, whose order varies between runs on
+    several threads; two paths of equal delay and interaction types (a symmetric scene's two
+    wedges) then swapped places, and every sum over a receiver's paths moved by an ulp (a CKM
+    cell's delay spread, docs/ckm.md)."""
     valid = d["valid"]
     tau = np.where(valid, d["tau_s"], np.inf)
     inter = d["interaction"]  # [rx, tx, depth, path]
+    depth = inter.shape[2]
     # np.lexsort: the last key is the primary one.
-    keys = [inter[:, :, k, :] for k in range(inter.shape[2] - 1, -1, -1)] + [tau, ~valid]
+    keys = []
+    if "vertices_m" in d:  # [rx, tx, depth, path, 3]; the least significant keys
+        vert = np.where(np.isfinite(d["vertices_m"]), d["vertices_m"], np.inf)
+        keys += [vert[:, :, k, :, c] for k in range(depth - 1, -1, -1) for c in (2, 1, 0)]
+    for name in ("primitives", "objects"):
+        if name in d:
+            keys += [d[name][:, :, k, :] for k in range(depth - 1, -1, -1)]
+    keys += [inter[:, :, k, :] for k in range(depth - 1, -1, -1)] + [tau, ~valid]
     order = np.lexsort(keys, axis=-1)  # [rx, tx, path]
 
     def take(key, v):
