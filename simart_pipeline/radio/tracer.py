@@ -490,8 +490,8 @@ def drop_duplicate_paths(d: dict[str, np.ndarray],
     """Mark invalid every path that repeats an earlier one of the same (receiver, transmitter):
     equal interaction, object and primitive sequences and every vertex within ``tolerance_m``
     (largest coordinate difference) of a path kept before it. The first in path order is kept
-    (deterministic: the solver's order for equal inputs); a path with a non-finite vertex repeats
-    none.
+    (deterministic: :func:`_ordered`'s order, whatever order the solver returned); a path with a
+    non-finite vertex repeats none.
 
     ``d`` holds ``valid`` [rx, tx, path], ``interaction``, ``objects``, ``primitives``
     [rx, tx, depth, path] and ``vertices_m`` [rx, tx, depth, path, 3]; returns a copy with
