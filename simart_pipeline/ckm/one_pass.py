@@ -53,6 +53,13 @@ With ``diffraction_resample_factor`` f > 1 a second pass aims diffraction sample
 left with too few hits: the stretches of edge whose diffracted rays reached them are traced again
 exactly (taken out of those cells) and with f times the samples (put in), an unbiased swap
 (:func:`_resample_undersampled`; off by default, docs/ckm-one-pass.md "Session 15" says why).
+With ``lattice_resample_factor`` f > 1 a second pass does the same for the lattice rays: the sphere
+of launch directions is cut into equal-area bins of about 16 lattice points
+(:class:`~simart_pipeline.ckm.shoot_bounce.LatticeBins`), every deposit of a lattice ray that
+never scattered diffusely is tagged with its launch bin, and in the cells with too few effective
+hits whose noise those deposits make, the bins that reached them (and the bins beside those) are
+traced again exactly (taken out) and with f times the rays (put in) (:func:`_resample_lattice`;
+docs/ckm-one-pass.md "Session 29").
 
 Cells are masked (zero moments) where the caller says ``indoor`` or where less than
 ``min_outdoor_fraction`` of their area is outside buildings; the others have their sums divided by
@@ -90,8 +97,8 @@ from scipy import sparse
 from simart_pipeline.ckm.moments import CellMoments, layers_from_moments, too_few_for_power
 from simart_pipeline.ckm.diffraction import STRETCHES_PER_PAIR
 from simart_pipeline.ckm.outdoor import outdoor_fraction
-from simart_pipeline.ckm.shoot_bounce import (DIRECTION_QUANTUM, Q_BITS, Q_OFFSET, Grid, Tracer,
-                                              grid_from_centres)
+from simart_pipeline.ckm.shoot_bounce import (DIRECTION_QUANTUM, NOT_A_BIN, Q_BITS, Q_OFFSET, TAGS, Grid,
+                                              LatticeBins, Tracer, grid_from_centres)
 from simart_pipeline.link.beams import rotation_local_to_world
 from simart_pipeline.scene.solids import Solids
 from simart_pipeline.vocabulary import SPEED_OF_LIGHT_MPS
@@ -109,6 +116,13 @@ DEFAULT_MIN_HITS_FOR_SPREAD = 10
 DEFAULT_MIN_HITS_FOR_POWER = 5  # config.Ckm.min_hits_for_power's default; the reasoning is there
 DEFAULT_MIN_OUTDOOR_FRACTION = 0.5
 DEFAULT_MAX_FOOTPRINT_CELLS = 8.0
+DEFAULT_LATTICE_BIN_RAYS = 16  # lattice points per bin of the lattice's second pass (LatticeBins)
+RANDOM_STREAMS = 2**32  # the tracer's random streams are keyed by a UInt32 ray number
+# the lattice's second pass swaps a few-hit cell's binned part (lattice rays never diffused) where
+# that part holds at least this share of the cell's sum of squared deposits: where it makes the
+# cell's noise. Elsewhere the noise is the diffracted or diffused rays' (urban: 93 % of the
+# undersampled cells' power came from diffraction), which finer lattice rays would not change
+LATTICE_NOISE_SHARE = 0.5
 # config.Ckm.diffuse_connections' default: the run-time/error front chose it (the config says why)
 DEFAULT_DIFFUSE_CONNECTIONS = 0.5
 BEAM_CHUNK = 4096  # directions per step of beam_factors (3x faster than all at once on 2e5)
@@ -130,6 +144,7 @@ class OnePassMoments(CellMoments):
     masked: np.ndarray | None = None  # [num_heights, ny, nx] bool: indoor or too little outdoor area
     num_rays: int = 0                 # rays of the pass (0: a merge of passes)
     second_pass: dict | None = None   # the diffraction second pass on undersampled cells (one_pass_moments)
+    lattice_second_pass: dict | None = None  # the lattice rays' second pass on undersampled cells
 
     def layers(self) -> dict[str, np.ndarray]:
         """:func:`layers_from_moments` with this run's ``min_count_for_spread`` and
@@ -163,16 +178,21 @@ class _Accumulator:
         self.ant = ant_positions_m
         self.rot = tx_rotation
         self.k = 2 * np.pi / wavelength_m
-        self.stretch_keys: list[np.ndarray] = []  # distinct (cell << 32 | stretch) of tagged deposits
+        # per tag (shoot_bounce.TAGS: a diffracted ray's stretch of edge, a lattice ray's bin): the
+        # distinct (cell << 32 | tag) of the tagged deposits
+        self.tag_keys: dict[str, list[np.ndarray]] = {k: [] for k in TAGS}
+        # sum p and sum p^2 per cell of the deposits with a lattice bin (lattice rays never diffused)
+        self.binned_power: np.ndarray | None = None
+        self.binned_power_sq: np.ndarray | None = None
         # (cells, direction keys, power sums) of the deposit sets whose beams are still to add
         self.beam_groups: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
 
     def __call__(self, dep: dict[str, np.ndarray], line_of_sight: bool) -> None:
         m = self.m
         cell = dep["cell"].astype(np.int64)
-        if "stretch" in dep:
-            self.stretch_keys.append(pd.unique((cell.astype(np.uint64) << np.uint64(32))
-                                               | dep["stretch"].astype(np.uint64)))
+        for tag in TAGS:
+            if tag in dep:
+                self._tag(tag, cell, dep[tag], dep["power"])
         p = dep["power"]
         _accumulate_deposits(cell, p, dep["dist"], *(dep[f"cos{k}"] for k in range(4)),
                              *(dep[f"sin{k}"] for k in range(4)), line_of_sight, m.tau0_s, m.power, m.power_sq,
@@ -190,6 +210,19 @@ class _Accumulator:
             self.beam_groups.append(groups)
             if sum(len(g[0]) for g in self.beam_groups) > MAX_PENDING_GROUPS:
                 self._add_beams()
+
+    def _tag(self, tag: str, cell: np.ndarray, value: np.ndarray, power: np.ndarray) -> None:
+        """Records which tags (numpy) reached which cells; for lattice bins also the binned
+        deposits' power sums (a deposit after a diffuse reflection has no bin: NOT_A_BIN)."""
+        if tag == "lattice_bin":
+            binned = value != NOT_A_BIN
+            cell, value, power = cell[binned], value[binned], power[binned].astype(np.float64)
+            n = len(self.m.power)
+            if self.binned_power is None:
+                self.binned_power, self.binned_power_sq = np.zeros(n), np.zeros(n)
+            self.binned_power += np.bincount(cell, power, n)
+            self.binned_power_sq += np.bincount(cell, power * power, n)
+        self.tag_keys[tag].append(pd.unique((cell.astype(np.uint64) << np.uint64(32)) | value.astype(np.uint64)))
 
     def summed(self) -> CellMoments:
         """The running sums, every deposit's beams included (line of sight's come in moments())."""
@@ -222,14 +255,16 @@ class _Accumulator:
         weights = sparse.csr_matrix((pg, inverse, np.r_[first, len(g_cell)]), shape=(len(first), len(keys)))
         self.m.beam_power[g_cell[first]] += weights @ gains
 
-    def stretches_into(self, cells: np.ndarray) -> np.ndarray:
-        """The stretches of edge (DiffractionSampler tags) whose diffracted rays reached any of the
-        flat ``cells`` (a lookup per key: sorting every key costs seconds on a city grid)."""
-        if not self.stretch_keys or not len(cells):
+    def tags_into(self, cells: np.ndarray, tag: str = "stretch") -> np.ndarray:
+        """The tags (``stretch``: stretches of edge, DiffractionSampler's; ``lattice_bin``: bins of
+        the lattice) whose rays reached any of the flat ``cells`` (a lookup per key: sorting every
+        key costs seconds on a city grid)."""
+        keys = self.tag_keys[tag]
+        if not keys or not len(cells):
             return np.zeros(0, np.int64)
         chosen = np.zeros(len(self.m.power), bool)
         chosen[cells] = True
-        into = [k[chosen[(k >> np.uint64(32)).astype(np.int64)]] for k in self.stretch_keys]
+        into = [k[chosen[(k >> np.uint64(32)).astype(np.int64)]] for k in keys]
         return np.unique((np.concatenate(into) & np.uint64(0xFFFFFFFF)).astype(np.int64))
 
     def replace(self, cells: np.ndarray, old: CellMoments, new: CellMoments) -> None:
@@ -304,9 +339,9 @@ class _DeviceAccumulator(_Accumulator):
         dr, mi = self.dr, self.mi
         add = dr.ReduceOp.Add
         cell = dep["cell"]
-        if "stretch" in dep:  # the second pass's bookkeeping stays on the host (few keys)
-            keys = (mi.UInt64(cell) << 32) | mi.UInt64(dep["stretch"])
-            self.stretch_keys.append(pd.unique(keys.numpy().astype(np.uint64)))
+        for tag in TAGS:  # the second passes' bookkeeping stays on the host
+            if tag in dep:
+                self._tag(tag, cell.numpy().astype(np.int64), dep[tag].numpy(), dep["power"].numpy())
         p = mi.Float64(dep["power"])
         s = self.d_sums
         dr.scatter_reduce(add, s["power"], p, cell)
@@ -576,7 +611,8 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                      diffraction_resample_factor: int = 1, diffuse_last_only: bool = False,
                      diffuse_connections: float = DEFAULT_DIFFUSE_CONNECTIONS,
                      accumulate_on_device: bool | None = None,
-                     cell_outdoor_fraction: np.ndarray | None = None) -> OnePassMoments:
+                     cell_outdoor_fraction: np.ndarray | None = None, lattice_resample_factor: int = 1,
+                     lattice_bin_rays: int = DEFAULT_LATTICE_BIN_RAYS) -> OnePassMoments:
     """Per-cell power moments of one transmitter over a grid, from one shoot-and-bounce pass.
 
     :param radio: :class:`simart_pipeline.radio.tracer.RadioScene` (mesh, materials of its
@@ -635,6 +671,13 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         diffracted rays reached it are sampled again with this many times their samples, and in
         those cells their first-pass part is replaced by the finer one
         (:func:`_resample_undersampled`); ``second_pass`` of the result says what it did
+    :param lattice_resample_factor: the lattice rays' second pass on undersampled cells (1: none):
+        where a cell outside the mask has at least one ray hit but an effective count (Kish) below
+        ``max(min_hits_for_power, min_effective_hits_for_power)``, the bins of launch directions
+        (:class:`simart_pipeline.ckm.shoot_bounce.LatticeBins`, ``lattice_bin_rays`` lattice points
+        each) whose rays reached it are traced again and with this many times their rays, and in
+        those cells their first-pass part is replaced by the finer one (:func:`_resample_lattice`);
+        ``lattice_second_pass`` of the result says what it did
     :param diffuse_connections: with ``diffuse_reflection``, the cells each diffuse hit is also
         joined to by a shadow ray, on average (next-event estimation weighted with the scattered
         ray by the balance heuristic, :meth:`simart_pipeline.ckm.shoot_bounce.Tracer._connect`);
@@ -701,6 +744,11 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
     resample = int(diffraction_resample_factor)
     if resample < 1:
         raise ValueError(f"diffraction_resample_factor must be >= 1, got {diffraction_resample_factor}")
+    lattice_factor = int(lattice_resample_factor)
+    if lattice_factor < 1:
+        raise ValueError(f"lattice_resample_factor must be >= 1, got {lattice_resample_factor}")
+    if lattice_factor > 1:  # the lattice rays' deposits tagged with their bin, for the second pass
+        tracer.lattice_bins = LatticeBins(int(num_rays), int(lattice_bin_rays))
     wedges = None
     with _sink(acc) as sink:
         for start in range(0, int(num_rays), int(batch_rays)):
@@ -723,6 +771,12 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
             acc, wedges, resample, masked.ravel(), frac.ravel(), int(min_hits_for_power),
             float(min_effective_hits_for_power), SAMPLES_PER_BATCH_RAY * int(batch_rays),
             lambda: accumulator(grid, tx_position_m, codebook, ant, rot, radio.wavelength_m))
+    lattice_pass = None
+    if lattice_factor > 1:
+        lattice_pass = _resample_lattice(
+            acc, tracer, lattice_factor, masked.ravel(), frac.ravel(), int(min_hits_for_power),
+            max(float(min_effective_hits_for_power), float(min_hits_for_power)), int(batch_rays),
+            lambda: accumulator(grid, tx_position_m, codebook, ant, rot, radio.wavelength_m))
     m = acc.moments()
     scale = np.where(masked, 0.0, 1.0 / np.maximum(frac, 1e-12))
     for f in ("power", "los_power", "p_excess_delay_s", "p_excess_delay2_s2"):
@@ -738,7 +792,7 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                           min_count_for_power=int(min_hits_for_power),
                           min_effective_count_for_power=float(min_effective_hits_for_power),
                           outdoor_fraction=frac, masked=masked,
-                          num_rays=int(num_rays), second_pass=second_pass)
+                          num_rays=int(num_rays), second_pass=second_pass, lattice_second_pass=lattice_pass)
 
 
 def default_batch_rays(variant: str) -> int:
@@ -770,7 +824,7 @@ def _resample_undersampled(acc: _Accumulator, wedges, factor: int, masked, frac,
     from the edge) about the same hits from narrower footprints, i.e. less smoothing. Cells whose
     few hits are not diffracted (a grazing reflected tube) keep them. Returns what it did."""
     cells = _undersampled_cells(acc, masked, frac, min_hits, min_effective)
-    stretches = acc.stretches_into(cells)
+    stretches = acc.tags_into(cells, "stretch")
     out = {"factor": int(factor), "undersampled_cells": int(len(cells)), "stretches": int(len(stretches)),
            "pairs": int(len(np.unique(stretches // STRETCHES_PER_PAIR))), "new_samples": 0}
     if not len(stretches):
@@ -778,6 +832,72 @@ def _resample_undersampled(acc: _Accumulator, wedges, factor: int, masked, frac,
     replay, finer = new_accumulator(), new_accumulator()
     with _sink(replay) as replay_sink, _sink(finer) as finer_sink:
         out["new_samples"] = wedges.resample(stretches, factor, batch, replay_sink, finer_sink)
+    acc.replace(cells, replay.summed(), finer.summed())
+    out["still_undersampled"] = int(len(_undersampled_cells(acc, masked, frac, min_hits, min_effective)))
+    return out
+
+
+def _resample_lattice(acc: _Accumulator, tracer: Tracer, factor: int, masked, frac, min_hits: int,
+                      min_effective: float, batch: int, new_accumulator) -> dict:
+    """The lattice rays' second pass of ``one_pass_moments(lattice_resample_factor=factor)``: the
+    cells whose effective count stays below ``min_effective`` (:func:`_undersampled_cells`) and
+    whose binned deposits (lattice rays that never scattered diffusely) hold at least
+    :data:`LATTICE_NOISE_SHARE` of their sum of squared deposits, the
+    bins of launch directions whose lattice rays reached them (their deposits tagged in the first
+    pass, :class:`LatticeBins`) and the bins beside those (:meth:`LatticeBins.with_neighbours`),
+    those bins' lattice rays traced again (the same rays, bit for
+    bit: the same directions, solid angle and random streams) and ``factor`` times as many new
+    rays over the same bins (:meth:`LatticeBins.finer_directions`, each ray ``4 pi / (bins x
+    rays per bin)`` sr, random streams numbered after the lattice's), both stopped at their first
+    diffuse reflection (``Tracer.undiffused_only``); in those cells the first are taken out and the
+    new ones put in. A bin is chosen for a cell when any of its rays reached the cell, so a chosen
+    cell's whole binned part is swapped (its diffracted part is the diffraction pass's business,
+    its diffused part stays: a diffused ray lands where its scattering sends it, not where its
+    bin points, so finer bins would not aim at the cell). The new estimate is unbiased for the chosen bins'
+    part of the cell; a bin that reaches the cell but sent none of its few first-pass rays there
+    is missed unless it lies beside one that did (hence the neighbours: measured in the tests on
+    free space, the swapped cells' total stays the closed form's). Returns what it did."""
+    bins_of = tracer.lattice_bins
+    few = _undersampled_cells(acc, masked, frac, min_hits, min_effective)
+    m = acc.summed()
+    if acc.binned_power_sq is None:
+        cells = few[:0]
+    else:  # the binned deposits carry the cell's noise (most of its sum of squares)
+        cells = few[acc.binned_power_sq[few] >= LATTICE_NOISE_SHARE * m.power_sq[few]]
+    reaching = acc.tags_into(cells, "lattice_bin")
+    bins = bins_of.with_neighbours(reaching) if len(reaching) else reaching
+    per_bin = max(1, int(round(factor * bins_of.num_rays / bins_of.num_bins)))
+    out = {"factor": int(factor), "undersampled_cells": int(len(few)), "cells_swapped": int(len(cells)),
+           "bins_reaching": int(len(reaching)),
+           "bins": int(len(bins)),
+           "num_bins": bins_of.num_bins, "replayed_rays": 0, "new_rays": int(len(bins) * per_bin)}
+    if not len(bins):
+        return out
+    first_stream = bins_of.num_rays  # the new rays' random streams follow the lattice's
+    if first_stream + len(bins) * per_bin > RANDOM_STREAMS:
+        raise ValueError(f"lattice_resample_factor {factor}: {len(bins) * per_bin} new rays after {first_stream} "
+                         "lattice rays exceed the 2**32 random streams; lower the factor or num_rays")
+    rays = bins_of.rays_in(bins)
+    out["replayed_rays"] = int(len(rays))
+    # the second pass's rays are not tagged again; their first hits name no new wedges
+    tracer.lattice_bins, lit = None, tracer._lit_face_mask
+    tracer._lit_face_mask, tracer.undiffused_only = None, True
+    replay, finer = new_accumulator(), new_accumulator()
+    try:
+        with _sink(replay) as sink:
+            for lo in range(0, len(rays), batch):
+                tracer.trace(0, 0, sink, indices=rays[lo:lo + batch])
+        tracer.set_solid_angle(4 * np.pi / (bins_of.num_bins * per_bin))
+        step = max(1, batch // per_bin)  # bins per batch
+        with _sink(finer) as sink:
+            for lo in range(0, len(bins), step):
+                chunk = bins[lo:lo + step]
+                streams = first_stream + lo * per_bin + np.arange(len(chunk) * per_bin, dtype=np.int64)
+                tracer.trace(0, 0, sink, indices=streams.astype(np.uint32),
+                             directions=bins_of.finer_directions(chunk, per_bin))
+    finally:
+        tracer.set_solid_angle(4 * np.pi / tracer.num_rays)
+        tracer.lattice_bins, tracer._lit_face_mask, tracer.undiffused_only = bins_of, lit, False
     acc.replace(cells, replay.summed(), finer.summed())
     out["still_undersampled"] = int(len(_undersampled_cells(acc, masked, frac, min_hits, min_effective)))
     return out

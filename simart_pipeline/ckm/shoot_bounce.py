@@ -85,9 +85,14 @@ _RNG_SEED = 0x2545F491
 SPLIT_MIN_SHARE = 0.03
 _TUBE = ("tube_c", "tube_l0")  # a diffracted ray's own ray tube (Tracer._footprint)
 # carried unchanged through every interaction: the tube, and the stretch of edge a diffracted ray
-# came from, which its deposits report when the sampler tags them (the second pass on
-# undersampled cells, one_pass)
-_CARRIED = _TUBE + ("stretch",)
+# came from or the lattice bin a lattice ray left through, which its deposits report when they are
+# tagged (the second passes on undersampled cells, one_pass)
+TAGS = ("stretch", "lattice_bin")
+# the lattice_bin tag of a deposit made after a diffuse reflection (or by a diffuse hit's
+# connection): such a deposit falls where the scattering sent it, not where its launch bin points,
+# so the lattice's second pass leaves it out of its bins and of its swap
+NOT_A_BIN = 0xFFFFFFFF
+_CARRIED = _TUBE + TAGS
 
 
 @dataclass(frozen=True)
@@ -148,15 +153,18 @@ def grid_from_centres(x_m, y_m, heights_m, cell_size_m: float | None = None) -> 
     return Grid(x0 - dx / 2, y0 - dy / 2, dx, dy, len(np.atleast_1d(x_m)), len(np.atleast_1d(y_m)), h)
 
 
-def fibonacci_directions(start: int, stop: int, num_rays: int):
-    """Unit vectors (``mi.Vector3f``) of lattice points ``start..stop-1`` of the ``num_rays``-point
+def fibonacci_directions(start: int, stop: int, num_rays: int, indices=None):
+    """Unit vectors (``mi.Vector3f``) of lattice points ``start..stop-1`` (or of the ``indices``,
+    ``mi.UInt32``, where given) of the ``num_rays``-point
     spherical Fibonacci lattice (Gonzalez 2010, Math. Geosci. 42: 49-64): ``z = 1 - 2 i / (N - 1)``,
     azimuth ``2 pi frac(i / golden ratio)``, lattice arithmetic in float64 (exact indices up to
     2**53), so a ray is the same whatever the batch that holds it."""
     import drjit as dr
     import mitsuba as mi
 
-    i = mi.Float64(dr.arange(mi.UInt32, start, stop))
+    i = mi.Float64(dr.arange(mi.UInt32, start, stop) if indices is None else indices)
+    if indices is not None:
+        start, stop = 0, dr.width(indices)
     # the lattice size enters as an opaque variable, not a literal: a new ray count (the adaptive
     # rule's, a benchmark's) reuses the compiled kernels (a literal cost 1.5-2.5 s of compilation
     # per new count on the urban scene); IEEE division is exactly rounded either way
@@ -167,6 +175,90 @@ def fibonacci_directions(start: int, stop: int, num_rays: int):
     r = dr.sqrt(dr.maximum(1.0 - z * z, 0.0))
     sp, cp = dr.sincos(phi)
     return mi.Vector3f(r * cp, r * sp, z)
+
+
+def _mix64(x: np.ndarray) -> np.ndarray:
+    """splitmix64's finaliser on uint64 (a counter-based hash: the same bits in any order)."""
+    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return x ^ (x >> np.uint64(31))
+
+
+class LatticeBins:
+    """The sphere of launch directions cut into ``num_z`` bands of equal height in ``z`` and
+    ``num_phi`` sectors of equal azimuth: equal-area bins (area ``dz dphi``), about ``rays_per_bin``
+    points of the ``num_rays``-point Fibonacci lattice each (the bands as wide in angle at the
+    horizon as the sectors). The lattice's second pass (``one_pass``) re-traces the lattice rays of
+    chosen bins and traces new, finer rays over the same bins: a bin is a region of the sphere both
+    sets of rays cover exactly, which a Fibonacci point's own (irregular) Voronoi cell is not.
+
+    A lattice point's bin is computed here alone, in float64 from its index (``z`` and the azimuth
+    fraction exactly as :func:`fibonacci_directions` forms them), both to tag the first pass's rays
+    and to find the rays of a bin again."""
+
+    def __init__(self, num_rays: int, rays_per_bin: int):
+        if int(rays_per_bin) < 1:
+            raise ValueError(f"rays_per_bin must be >= 1, got {rays_per_bin}")
+        self.num_rays = int(num_rays)
+        bins = max(self.num_rays / int(rays_per_bin), 1.0)
+        self.num_z = max(1, int(round(np.sqrt(bins / np.pi))))
+        self.num_phi = max(1, int(round(bins / self.num_z)))
+        self.num_bins = self.num_z * self.num_phi
+
+    def bin_of(self, index: np.ndarray) -> np.ndarray:
+        """Bins (uint32) of lattice points ``index``."""
+        i = np.asarray(index, np.float64)
+        span = float(max(self.num_rays - 1, 1))
+        u = i / span if self.num_rays > 1 else np.zeros_like(i)  # (1 - z) / 2
+        frac = i / _GOLDEN_RATIO
+        frac -= np.floor(frac)
+        bz = np.minimum((u * self.num_z).astype(np.int64), self.num_z - 1)
+        bp = np.minimum((frac * self.num_phi).astype(np.int64), self.num_phi - 1)
+        return (bz * self.num_phi + bp).astype(np.uint32)
+
+    def with_neighbours(self, bins: np.ndarray) -> np.ndarray:
+        """``bins`` and the bins beside them (sorted, unique): the 8 around each (the azimuth wraps
+        round), and a whole polar band where one of its bins is chosen (its bins meet at the pole).
+        A cell's directions seen from the transmitter can straddle a bin's border while the few
+        first-pass rays that reached it came through one bin; the finer rays need every bin that
+        reaches the cell, or the swap would leave out the part of the bins beside it."""
+        bz, bp = np.divmod(np.asarray(bins, np.int64), self.num_phi)
+        dz, dp = np.meshgrid([-1, 0, 1], [-1, 0, 1], indexing="ij")
+        nz = bz[:, None] + dz.ravel()
+        np_ = np.mod(bp[:, None] + dp.ravel(), self.num_phi)
+        inside = (nz >= 0) & (nz < self.num_z)
+        out = [(nz * self.num_phi + np_)[inside]]
+        for band in {0, self.num_z - 1} & set(np.unique(bz).tolist()):
+            out.append(band * self.num_phi + np.arange(self.num_phi))
+        return np.unique(np.concatenate(out)).astype(np.int64)
+
+    def rays_in(self, bins: np.ndarray, chunk: int = 1 << 22) -> np.ndarray:
+        """The lattice indices (sorted, uint32) whose bin is one of ``bins``."""
+        chosen = np.zeros(self.num_bins, bool)
+        chosen[np.asarray(bins, np.int64)] = True
+        out = [lo + np.flatnonzero(chosen[self.bin_of(np.arange(lo, min(lo + chunk, self.num_rays)))])
+               for lo in range(0, self.num_rays, chunk)]
+        return np.concatenate(out).astype(np.uint32)
+
+    def finer_directions(self, bins: np.ndarray, per_bin: int, seed: int = 0) -> np.ndarray:
+        """``per_bin`` directions in each of ``bins`` (``[len(bins) * per_bin, 3]`` float64, bin by
+        bin): a rank-1 lattice over the bin's ``(z, azimuth)`` rectangle (``((k + 1/2) / M,
+        frac(k / golden ratio))``) shifted at random per bin (Cranley and Patterson 1976; the shift
+        a hash of the bin and ``seed``), so each direction is uniform over its bin (equal area in
+        ``(z, azimuth)``) and the set an unbiased, stratified estimate of the bin's integral."""
+        b = np.asarray(bins, np.uint64)
+        h1 = _mix64(b * np.uint64(2) + np.uint64(int(seed) * 0x9E3779B97F4A7C15 % 2**64))
+        h2 = _mix64(h1 ^ np.uint64(0xD1B54A32D192ED03))
+        s = np.stack([(h >> np.uint64(11)).astype(np.float64) * 2.0**-53 for h in (h1, h2)], -1)
+        k = np.arange(int(per_bin), dtype=np.float64)
+        u = (k[None, :] + 0.5) / per_bin + s[:, :1]
+        v = k[None, :] / _GOLDEN_RATIO + s[:, 1:]
+        u, v = u - np.floor(u), v - np.floor(v)
+        bz, bp = np.divmod(np.asarray(bins, np.int64), self.num_phi)
+        z = 1.0 - 2.0 * (bz[:, None] + u) / self.num_z
+        phi = 2.0 * np.pi * (bp[:, None] + v) / self.num_phi
+        r = np.sqrt(np.maximum(1.0 - z * z, 0.0))
+        return np.stack([r * np.cos(phi), r * np.sin(phi), z], -1).reshape(-1, 3)
 
 
 def direction_terms(d_c, d_dep, rotation, with_beams: bool) -> dict:
@@ -487,6 +579,10 @@ class Tracer:
                          mi.UInt32(pat_tab))
         # p = |E|^2 * solid angle / |cos| * (lambda / 4 pi)^2 / cell area (RadioMapSolver's estimator)
         self.tube_c = opaque(4 * np.pi / num_rays)  # a lattice ray's tube: 4 pi / N sr
+        self.lattice_bins: LatticeBins | None = None  # set: the lattice rays' deposits are tagged with their bin
+        # True: rays stop at a diffuse reflection and diffuse hits make no connections (the
+        # lattice's second pass re-traces the part of its bins that never scattered diffusely)
+        self.undiffused_only = False
         self.max_footprint_cells = float(max_footprint_cells)
         # True: deposits handed to the sink as evaluated Dr.Jit arrays (one_pass._DeviceAccumulator),
         # False: as numpy arrays
@@ -499,8 +595,8 @@ class Tracer:
         # meets nothing and crosses no plane: the rays transmitted through the ground are culled
         # (a fifth of the first hits' transmitted rays in the street canyon)
         self.floor_z = opaque(min(float(self.scene.bbox().min.z) + 1e-3, float(np.min(grid.heights))))
-        self.power_scale = opaque((4 * np.pi / num_rays) * (radio.wavelength_m / (4 * np.pi)) ** 2
-                                  / (grid.dx * grid.dy))
+        self._power_per_sr = (radio.wavelength_m / (4 * np.pi)) ** 2 / (grid.dx * grid.dy)
+        self.power_scale = opaque((4 * np.pi / num_rays) * self._power_per_sr)
         self.nee = None
         if self.diffuse and diffuse_connections > 0:
             self._setup_connections(float(diffuse_connections))
@@ -527,9 +623,29 @@ class Tracer:
             # density per candidate cell (0 elsewhere): the MIS weight of a scattered ray's crossing
             cell_density=mi.Float(np.where(frac > 0, density, 0.0).astype(np.float32)))
 
-    def launch(self, start: int, stop: int):
+    def set_solid_angle(self, solid_angle_sr: float) -> None:
+        """The solid angle each launched ray stands for from now on (``4 pi / num_rays`` for the
+        lattice; the second pass's finer rays less): the power of its deposits and its tube."""
+        self.tube_c = self.dr.opaque(self.mi.Float, float(solid_angle_sr))
+        self.power_scale = self.dr.opaque(self.mi.Float, float(solid_angle_sr) * self._power_per_sr)
+
+    def launch(self, start: int, stop: int, indices: np.ndarray | None = None, directions: np.ndarray | None = None,
+               bins: np.ndarray | None = None):
+        """Ray state of lattice points ``start..stop-1``, or of the lattice points ``indices``
+        (uint32), or of unit ``directions`` ``[n, 3]`` (float64, world) whose random numbers are
+        keyed by ``indices`` (numbers outside the lattice's ``0..num_rays-1``: streams of their
+        own). With :attr:`lattice_bins` set every ray carries its bin (``bins``, or the lattice
+        point's, :meth:`LatticeBins.bin_of`) as the tag ``lattice_bin``."""
         dr, mi = self.dr, self.mi
-        d = fibonacci_directions(start, stop, self.num_rays)
+        if directions is not None:
+            u = np.asarray(directions, np.float64)
+            d = mi.Vector3f(*(u[:, k].astype(np.float32) for k in range(3)))
+            start, stop = 0, len(u)
+        elif indices is not None:
+            d = fibonacci_directions(0, 0, self.num_rays, indices=mi.UInt32(np.asarray(indices, np.uint32)))
+            start, stop = 0, len(indices)
+        else:
+            d = fibonacci_directions(start, stop, self.num_rays)
         # field from the element pattern, evaluated in the transmitter's own frame
         R = self.rot
         dl = [sum(R[i][k] * d[i] for i in range(3)) for k in range(3)]  # R^T d
@@ -550,7 +666,12 @@ class Tracer:
         st = dict(o=o, d=d, e_re=e_re, e_im=e_im, length=dr.zeros(mi.Float, n), m0=mirror[0],
                   m1=mirror[1], m2=mirror[2])
         if self.sampled:  # the lattice index keys the ray's random numbers; anchor: see _interact
-            st.update(idx=dr.arange(mi.UInt32, start, stop), anchor=dr.zeros(mi.Float, n))
+            idx = dr.arange(mi.UInt32, start, stop) if indices is None else mi.UInt32(np.asarray(indices, np.uint32))
+            st.update(idx=idx, anchor=dr.zeros(mi.Float, n))
+        if self.lattice_bins is not None:
+            if bins is None:
+                bins = self.lattice_bins.bin_of(np.arange(start, stop) if indices is None else indices)
+            st["lattice_bin"] = mi.UInt32(np.asarray(bins, np.uint32))
         return st
 
     def _footprint(self, st, t_h):
@@ -650,8 +771,9 @@ class Tracer:
             p_conn = dr.gather(mi.Float, self.nee["cell_density"], cell)
             power *= dr.select(take["dir_pdf"] > 0, p_ray / (p_ray + p_conn), 1.0)
         out = dict(cell=cell, power=power, dist=dist)
-        if "stretch" in take:
-            out["stretch"] = take["stretch"]
+        out.update({k: take[k] for k in TAGS if k in take})
+        if "lattice_bin" in out and self.sampled:  # diffused since launch: no bin's
+            out["lattice_bin"] = dr.select(take["anchor"] == 0, out["lattice_bin"], NOT_A_BIN)
         out.update(direction_terms(d_c, d_dep, self.rot, self.with_beams))
         dr.eval(*out.values())
         return out if self.device_deposits else {k: v.numpy() for k, v in out.items()}
@@ -975,7 +1097,7 @@ class Tracer:
         extra = {}
         if self.diffuse:
             p_diff = w_diff / dr.select(total > 0, total, 1.0)  # the probability of drawing diffuse
-            if self.nee is not None and sink is not None:
+            if self.nee is not None and sink is not None and not self.undiffused_only:
                 connect = hit & (w_diff > 0)
                 if split:
                     connect &= ~through
@@ -997,6 +1119,8 @@ class Tracer:
             dep = on_departure_grid(mi.Vector3f(*(dr.dot(st[k], d) for k in ("m0", "m1", "m2"))))
             m = [dr.select(diff, dep[i] * ko, mk) for i, mk in enumerate(m)]
             anchor = dr.select(diff, length, anchor)
+        if self.undiffused_only:
+            alive &= ~diff
         new = dict(o=new_o, d=new_d, e_re=new_re, e_im=new_im, length=length, m0=m[0], m1=m[1], m2=m[2],
                    idx=st["idx"], anchor=anchor, **extra, **{k: st[k] for k in _CARRIED if k in st})
         return _compact(dr, new, alive)
@@ -1073,16 +1197,19 @@ class Tracer:
         # departure grid as the scattered ray's own
         d_dep = on_departure_grid(mi.Vector3f(*(dr.dot(take(st[c]), dh) for c in ("m0", "m1", "m2"))))
         out = dict(cell=dr.gather(mi.UInt32, nee["cell"], j), power=power, dist=take(length) + r_c)
-        if "stretch" in st:
-            out["stretch"] = take(st["stretch"])
+        out.update({k_: take(st[k_]) for k_ in TAGS if k_ in st})
+        if "lattice_bin" in out:  # a diffuse hit's connection: no bin's
+            out["lattice_bin"] = dr.full(mi.UInt32, NOT_A_BIN, dr.width(power))
         out.update(direction_terms(d_c, d_dep, self.rot, self.with_beams))
         dr.eval(*out.values())
         sink(out if self.device_deposits else {k_: v_.numpy() for k_, v_ in out.items()}, False)
 
-    def trace(self, start: int, stop: int, sink) -> None:
-        """Trace lattice rays ``start..stop-1``; ``sink(deposits, line_of_sight)`` per crossing set."""
-        if stop > start:
-            self.propagate(self.launch(start, stop), sink, self.max_depth, from_transmitter=True)
+    def trace(self, start: int, stop: int, sink, **rays) -> None:
+        """Trace lattice rays ``start..stop-1`` (or the rays ``rays`` name, :meth:`launch`);
+        ``sink(deposits, line_of_sight)`` per crossing set."""
+        n = len(rays["indices"]) if rays.get("indices") is not None else stop - start
+        if n > 0:
+            self.propagate(self.launch(start, stop, **rays), sink, self.max_depth, from_transmitter=True)
 
     def propagate(self, st, sink, max_depth: int, from_transmitter: bool, first_hit=None) -> None:
         """Trace ray state ``st`` (:meth:`launch`'s form) through up to ``max_depth``
