@@ -295,6 +295,31 @@ def test_the_config_asks_for_the_second_pass_and_the_tile_says_what_it_did(tiny_
     assert (twice["enough_hits"].values & few).sum() > 0  # measured: 60 of 76
 
 
+def test_the_config_asks_for_the_lattice_second_pass_and_the_tile_says_what_it_did(tiny_built, tiny_scene):
+    """ckm.lattice_resample_factor reaches the solver through the tile: with few rays the tile
+    records each station's lattice second pass, the cells that had enough effective hits keep
+    their gain bit for bit, and the undersampled ones get more hits."""
+    cfg, geom, _, out = tiny_built
+
+    def fast(factor):
+        return _cfg(tiny_scene, lambda raw: raw["ckm"].update(tiles=[1, 1], cell_size_m=2.0, mode="fast",
+                                                              num_rays=5_000, lattice_resample_factor=factor))
+
+    radio = RadioScene.from_config(meshes.radio_scene_file(out), fast(1))
+    once, twice = tile_layers(radio, fast(1), geom, "r0c0"), tile_layers(radio, fast(8), geom, "r0c0")
+    assert "lattice_second_pass_per_bs" not in once.attrs
+    done = twice.attrs["lattice_second_pass_per_bs"]
+    assert len(done) == len(cfg.base_stations) and all(p["factor"] == 8 for p in done)
+    assert sum(p["undersampled_cells"] for p in done) > 0 and sum(p["new_rays"] for p in done) > 0
+    eff = once["effective_count"].values
+    kept = once["has_path"].values & (eff >= cfg.ckm.min_hits_for_power)
+    np.testing.assert_array_equal(twice["path_gain_db"].values[kept], once["path_gain_db"].values[kept])
+    few = once["has_path"].values & ~kept
+    assert (twice["count"].values[few] > once["count"].values[few]).mean() > 0.5
+    with pytest.raises(ValueError, match="lattice_resample_factor"):
+        _cfg(tiny_scene, lambda raw: raw["ckm"].update(lattice_resample_factor=0))
+
+
 def test_the_config_sets_the_fast_modes_ray_batch_and_the_layers_do_not_depend_on_it(tiny_built, tiny_scene,
                                                                                      monkeypatch):
     """ckm.batch_rays (memory) and ckm.diffuse_connections reach the one-pass solver through the

@@ -61,6 +61,10 @@ def ckm_layers(context: dg.AssetExecutionContext, project: ProjectResource, ray_
             meta[f"{name}_second_pass"] = "; ".join(
                 f"bs {i}: {p['undersampled_cells']} undersampled cells, {p['new_samples']} new samples" if p else f"bs {i}: none"
                 for i, p in enumerate(ds.attrs["second_pass_per_bs"]))
+        if "lattice_second_pass_per_bs" in ds.attrs:
+            meta[f"{name}_lattice_second_pass"] = "; ".join(
+                f"bs {i}: {p['undersampled_cells']} undersampled cells, {p['new_rays']} new rays" if p else f"bs {i}: none"
+                for i, p in enumerate(ds.attrs["lattice_second_pass_per_bs"]))
     meta["compute_s"] = round(time.perf_counter() - t0, 2)
     meta["cells"] = int(grid.traced.size)
     if meta["cells_traced"]:

@@ -125,11 +125,12 @@ def reference_moments(radio, cfg: SceneConfig, points: np.ndarray, weights: np.n
 
 
 def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, tx_ant_positions_m
-                 ) -> tuple[mom.CellMoments, list[int], list[dict | None]]:
+                 ) -> tuple[mom.CellMoments, list[int], list[dict | None], list[dict | None]]:
     """One shoot-and-bounce pass per base station over the tile's planes (more where
     ``ckm.adaptive_max_rays`` asks): moments ``[B, H, y, x]``, the rays each station's pass used
-    and what each one's second pass on undersampled cells did (None: none,
-    ``ckm.diffraction_resample_factor``)."""
+    and what each one's second passes on undersampled cells did (None: none), the diffracted
+    rays' (``ckm.diffraction_resample_factor``) and the lattice rays'
+    (``ckm.lattice_resample_factor``)."""
     from simart_pipeline.ckm.one_pass import adaptive_one_pass_moments
     from simart_pipeline.ckm.outdoor import outdoor_fraction, radio_solids
 
@@ -148,6 +149,7 @@ def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, t
             min_effective_hits_for_power=cfg.ckm.min_effective_hits_for_power,
             max_footprint_cells=cfg.ckm.max_footprint_cells, cell_size_m=cfg.ckm.cell_size_m,
             diffraction_resample_factor=cfg.ckm.diffraction_resample_factor,
+            lattice_resample_factor=cfg.ckm.lattice_resample_factor,
             diffuse_connections=cfg.ckm.diffuse_connections,
             indoor=grid.inside_building | grid.outside_region[None], solids=solids, cell_outdoor_fraction=frac,
             # as the reference mode's receiver: its polarisation, not the whole field
@@ -160,7 +162,8 @@ def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, t
     for f in mom.CellMoments.__dataclass_fields__:
         vals = [getattr(m, f) for m in per_bs]
         stacked[f] = None if vals[0] is None else np.stack(vals)
-    return mom.CellMoments(**stacked), [m.num_rays for m in per_bs], [m.second_pass for m in per_bs]
+    return (mom.CellMoments(**stacked), [m.num_rays for m in per_bs], [m.second_pass for m in per_bs],
+            [m.lattice_second_pass for m in per_bs])
 
 
 def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_dir=None,
@@ -189,7 +192,7 @@ def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_
             getattr(m, f)[:, traced] = getattr(mt, f)
         coherent[:, traced] = coh
     elif n_traced:
-        m, rays_per_bs, second_pass = fast_moments(radio, cfg, grid, weights, tx_ant)
+        m, rays_per_bs, second_pass, lattice_pass = fast_moments(radio, cfg, grid, weights, tx_ant)
         coherent[:] = np.nan
     tx = np.array([b.position_m for b in cfg.base_stations], np.float64)
     centre = np.stack([xx, yy, hh], -1)
@@ -216,6 +219,8 @@ def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_
         ds.attrs["rays_per_bs"] = rays_per_bs  # the adaptive rule may have raised ckm.num_rays
         if any(second_pass):  # ckm.diffraction_resample_factor: what each station's second pass did
             ds.attrs["second_pass_per_bs"] = second_pass
+        if any(lattice_pass):  # ckm.lattice_resample_factor: what each station's lattice second pass did
+            ds.attrs["lattice_second_pass_per_bs"] = lattice_pass
     return ds
 
 

@@ -79,6 +79,17 @@ class Ckm(_Model):
         1, ge=1, le=64, description="fast mode, with diffraction: cells with a ray hit but fewer than "
         "min_hits_for_power get the diffracted part of the stretches of edge that reached them again from this "
         "many times their samples (a second pass, unbiased); 1: no second pass")
+    # The lattice rays' targeted second pass (one_pass.one_pass_moments): the few-hit cells whose
+    # noise the lattice rays make get their part again from this many times the rays, over the bins
+    # of launch directions that reached them. Off by default, as the front chose (benchmarks.
+    # lattice_second_pass, docs/ckm-one-pass.md "Session 29"): at 1e7 rays it swaps 385 of Munich's
+    # 3,643 few-hit cells for 1.005x the time (gain p50 0.353 -> 0.337 dB, slightly ahead of more
+    # rays), 5-10 cells on urban and the street canyon for 1.08-1.17x (behind more rays there).
+    lattice_resample_factor: int = Field(
+        1, ge=1, le=64, description="fast mode: cells whose effective number of ray hits stays below "
+        "min_hits_for_power, where the lattice rays (before any diffuse reflection) make the noise, get that "
+        "part again from this many times the rays, traced over the bins of launch directions (16 lattice rays "
+        "each) that reached them and the bins around those (a second pass); 1: no second pass")
     # Next-event estimation of diffuse reflection (shoot_bounce.Tracer._connect): each diffuse hit
     # is also joined by a shadow ray to a point drawn uniformly among the tile's outdoor cells, the
     # two estimates weighted by the balance heuristic (unbiased either way). 0.5, as the run-time/
