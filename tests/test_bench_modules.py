@@ -701,6 +701,27 @@ def test_ckm_variants_two_runs_agree_to_the_bit(tmp_path, monkeypatch):
         cv.compare(tmp_path / "a", tmp_path / "b")
 
 
+def test_lattice_second_pass_benchmark_reports_each_factor_against_a_finer_reference(tmp_path):
+    """benchmarks/lattice_second_pass on the street canyon (every mechanism) at 2e4 rays against the
+    one-pass at 2e5: a row per factor, what each second pass did, fewer cells left with few
+    effective hits with it, factor 1 again at the rays the other's time buys; a first factor other
+    than 1 is refused."""
+    from benchmarks import lattice_second_pass as lsp
+
+    args = ["--scenes", "street_canyon", "--rays", "2e4", "--reference-rays", "2e5", "--repeats", "1"]
+    assert lsp.main(["--out", str(tmp_path), "--factors", "1", "8"] + args) == 0
+    r = json.loads((tmp_path / "results.json").read_text())["scenes"]["street_canyon"]
+    runs = r["runs"]
+    assert set(runs) == {"1", "8"} and "lattice_second_pass" not in runs["1"]
+    done = runs["8"]["lattice_second_pass"]
+    assert done["factor"] == 8 and done["undersampled_cells"] == runs["1"]["cells_few_effective_hits"] > 0
+    assert done["new_rays"] > 0 and runs["8"]["cells_few_effective_hits"] < runs["1"]["cells_few_effective_hits"]
+    assert runs["8"]["first_at_equal_time"]["rays"] == round(20_000 * runs["8"]["time_over_first"])
+    assert "| lattice resample factor |" in (tmp_path / "results.md").read_text()
+    with pytest.raises(SystemExit):
+        lsp.main(["--out", str(tmp_path / "b"), "--factors", "8", "1"] + args)
+
+
 def test_diffuse_connections_benchmark_reports_each_setting_against_a_finer_reference(tmp_path):
     """benchmarks/diffuse_connections on the street canyon (every mechanism) at 2e4 rays against the
     one-pass at 2e5: a row per number of connections per diffuse hit, timed warm, over the
