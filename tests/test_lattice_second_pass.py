@@ -120,6 +120,26 @@ def test_replayed_rays_are_the_first_pass_and_only_undersampled_cells_change(tmp
         np.testing.assert_array_equal(getattr(again, f.name), getattr(second, f.name), err_msg=f.name)
 
 
+def test_the_second_pass_with_sums_on_the_device_equals_the_host_sums(tmp_path):
+    """``accumulate_on_device`` (the GPU's path) with the lattice second pass, diffuse reflection,
+    refraction and connections: the same cells swapped and the same moments as the host's, to
+    float32 rounding (``test_one_pass._assert_device_sums_equal_host_sums``)."""
+    from test_one_pass import _assert_device_sums_equal_host_sums
+
+    xml = _write_scene(tmp_path / "gw", {"ground": (_ground(), "medium_dry_ground"),
+                                         "wall": (_wall(12.0), "brick")}, 0.3)
+    radio = RadioScene.from_config(xml, _cfg())
+    radio.scene.objects["ground"].radio_material.scattering_coefficient = 0.3
+    x, y = _axes(-4.0, 16, -12.0, 12, 2.0)
+    kw = dict(refraction=True, diffuse_reflection=True, diffuse_connections=1.0, rx_polarization="V",
+              codebook=np.ones((1, 1), complex), lattice_resample_factor=8, batch_rays=3_001)
+    host, device = (op.one_pass_moments(radio, np.array([0.0, 1.0, 8.0]), np.zeros(3), x, y, np.array([1.5]),
+                                        20_000, 2, accumulate_on_device=on, **kw) for on in (False, True))
+    assert host.lattice_second_pass["cells_swapped"] >= 5
+    assert device.lattice_second_pass == host.lattice_second_pass
+    _assert_device_sums_equal_host_sums(host, device)
+
+
 def test_finer_rays_move_undersampled_cells_towards_friis():
     """Free space, isotropic element, 4,000 rays: the far cells get 1 to 4 hits, their gain tens of
     percent off the cell-mean Friis gain; the second pass with 16x the rays in their bins brings the

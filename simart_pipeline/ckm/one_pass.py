@@ -211,7 +211,7 @@ class _Accumulator:
             if sum(len(g[0]) for g in self.beam_groups) > MAX_PENDING_GROUPS:
                 self._add_beams()
 
-    def _tag(self, tag: str, cell: np.ndarray, value: np.ndarray, power: np.ndarray) -> None:
+    def _tag(self, tag: str, cell: np.ndarray, value: np.ndarray, power: np.ndarray | None) -> None:
         """Records which tags (numpy) reached which cells; for lattice bins also the binned
         deposits' power sums (a deposit after a diffuse reflection has no bin: NOT_A_BIN)."""
         if tag == "lattice_bin":
@@ -341,7 +341,8 @@ class _DeviceAccumulator(_Accumulator):
         cell = dep["cell"]
         for tag in TAGS:  # the second passes' bookkeeping stays on the host
             if tag in dep:
-                self._tag(tag, cell.numpy().astype(np.int64), dep[tag].numpy(), dep["power"].numpy())
+                self._tag(tag, cell.numpy().astype(np.int64), dep[tag].numpy(),
+                          dep["power"].numpy() if tag == "lattice_bin" else None)
         p = mi.Float64(dep["power"])
         s = self.d_sums
         dr.scatter_reduce(add, s["power"], p, cell)
