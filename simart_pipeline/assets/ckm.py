@@ -63,7 +63,8 @@ def ckm_layers(context: dg.AssetExecutionContext, project: ProjectResource, ray_
                 for i, p in enumerate(ds.attrs["second_pass_per_bs"]))
         if "lattice_second_pass_per_bs" in ds.attrs:
             meta[f"{name}_lattice_second_pass"] = "; ".join(
-                f"bs {i}: {p['undersampled_cells']} undersampled cells, {p['new_rays']} new rays" if p else f"bs {i}: none"
+                f"bs {i}: {p['cells_swapped']} of {p['undersampled_cells']} undersampled cells swapped, "
+                f"{p['new_rays']} new rays" if p else f"bs {i}: none"
                 for i, p in enumerate(ds.attrs["lattice_second_pass_per_bs"]))
     meta["compute_s"] = round(time.perf_counter() - t0, 2)
     meta["cells"] = int(grid.traced.size)
