@@ -334,8 +334,9 @@ def _reference_moments(paths, tau0_s: np.ndarray, codebook: np.ndarray, pool: in
     beam = (np.abs(y) ** 2).mean(1).transpose(0, 2, 1) / pool  # [rx, path, beam]
     ang = np.stack([paths.phi_r[:, 0], paths.theta_r[:, 0], paths.phi_t[:, 0], paths.theta_t[:, 0]], -1)
 
-    def cells(v):  # [cells * pool, path, ...] -> [cells, pool * path, ...]
-        return v.reshape((-1, pool * v.shape[1]) + v.shape[2:])
+    def cells(v):  # [cells * pool, path, ...] -> [cells, pool * path, ...]; the cell count spelled
+        # out: a batch where no receiver has a path has a path axis of length 0, which -1 cannot infer
+        return v.reshape((v.shape[0] // pool, pool * v.shape[1]) + v.shape[2:])
 
     return path_moments(cells(power), cells(paths.tau_s[:, 0]), cells(paths.valid[:, 0]), cells(paths.los[:, 0]),
                         cells(ang), tau0_s, cells(beam))
@@ -511,8 +512,8 @@ def interaction_shares(interaction: np.ndarray, power: np.ndarray, valid: np.nda
     if depth >= 2:
         late_diffraction |= is_d[:, 1] & (inter[:, 0] != int(InteractionKind.SPECULAR))
 
-    def per_cell(v):
-        return v.reshape(-1, pool * v.shape[1])[cells]
+    def per_cell(v):  # the cell count spelled out, as in _reference_moments (an empty path axis)
+        return v.reshape(v.shape[0] // pool, pool * v.shape[1])[cells]
 
     p = per_cell(np.where(valid, power, 0.0))
     tot = p.sum(-1, keepdims=True)

@@ -219,6 +219,8 @@ def test_interaction_shares_known_answer():
     assert r["untraced_pct"]["mean"] == 50.0 and r["untraced_pct"]["n"] == 2
     none = interaction_shares(inter, power, valid, pool=2, cells=np.array([False, False]))
     assert none["cells"] == 0 and none["sequences"] == {}
+    empty = interaction_shares(inter[..., :0], power[:, :0], valid[:, :0], pool=2, cells=np.array([True, True]))
+    assert empty["sequences"] == {}  # no path in any receiver: a path axis of length 0
 
 
 def test_coverage_counts_missed_and_extra_cells_and_names_what_pathsolver_found():
@@ -575,7 +577,8 @@ def test_rerun_alternates_baseline_and_this_commit_and_the_bench_asks_for_it(tmp
 
 def test_centre_and_pooled_reference_layers_known_answer(tiny_built):
     """The reference's n x n pooling: nine copies of one point pool to that point's own layers,
-    and the centre picked from a cell's nine receivers is the middle one."""
+    the centre picked from a cell's nine receivers is the middle one, and receivers without any
+    path give no value."""
     from benchmarks import ckm_solver as cs
     from simart_pipeline.radio.tracer import RadioScene
     from simart_pipeline.scene import meshes
@@ -600,6 +603,13 @@ def test_centre_and_pooled_reference_layers_known_answer(tiny_built):
         np.testing.assert_allclose(centre[name], alone[name], rtol=1e-5, atol=1e-12, err_msg=name)
         np.testing.assert_allclose(centre_of_spread[name], alone[name], rtol=1e-5, atol=1e-12, err_msg=name)
     assert not np.allclose(pooled_spread["path_gain_db"], alone["path_gain_db"], atol=1e-6)  # the points differ
+    # a batch where no receiver has a path (below the ground) has a path axis of length 0: no value,
+    # not a reshape error (the full bench's ckm_solver met one on the street canyon in session 29)
+    buried = radio.trace(tx[None], ori[None], np.repeat(centres - [0.0, 0.0, 6.5], 9, axis=0))
+    assert buried.tau_s.shape[-1] == 0
+    centre, pooled = cs._centre_and_pooled_layers(buried, tau0, codebook, 9)
+    assert not centre["has_path"].any() and not pooled["has_path"].any()
+    assert np.isnan(pooled["path_gain_db"]).all()
 
 
 def test_merged_reference_takes_diffuse_paths_from_one_run_and_the_rest_from_the_other():
