@@ -28,6 +28,7 @@ from benchmarks.bench import machine
 from benchmarks.ckm_variants import SceneRuns
 from simart_pipeline import engine
 from simart_pipeline.ckm import one_pass as op
+from simart_pipeline.ckm.moments import too_few_for_power
 
 SCENES = ("street_canyon", "urban")
 CONNECTIONS = (0.0, 0.5, 1.0)
@@ -54,8 +55,8 @@ def _errors(layers: dict, ref: dict, cells: np.ndarray) -> dict:
 
 def _few_effective_hits(m: op.OnePassMoments) -> int:
     """Cells outside the mask with a ray hit but an effective count (Kish) below ``min_hits_for_power``."""
-    eff = m.power**2 / np.where(m.power_sq > 0, m.power_sq, 1.0)
-    return int(np.sum((m.count >= 1) & ~m.masked & (eff < m.min_count_for_power)))
+    few = too_few_for_power(m, 1, float(m.min_count_for_power))  # the layers' Kish rule
+    return int(np.sum((m.count >= 1) & ~m.masked & few))
 
 
 def run_scene(name: str, rays: int, reference_rays: int, connections, reference_connections: float,

@@ -674,7 +674,8 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         (:func:`_resample_undersampled`); ``second_pass`` of the result says what it did
     :param lattice_resample_factor: the lattice rays' second pass on undersampled cells (1: none):
         where a cell outside the mask has at least one ray hit but an effective count (Kish) below
-        ``max(min_hits_for_power, min_effective_hits_for_power)``, the bins of launch directions
+        ``max(min_hits_for_power, min_effective_hits_for_power)`` and the lattice rays that never
+        scattered diffusely make its noise (:data:`LATTICE_NOISE_SHARE`), the bins of launch directions
         (:class:`simart_pipeline.ckm.shoot_bounce.LatticeBins`, ``lattice_bin_rays`` lattice points
         each) whose rays reached it are traced again and with this many times their rays, and in
         those cells their first-pass part is replaced by the finer one (:func:`_resample_lattice`);
@@ -866,7 +867,7 @@ def _resample_lattice(acc: _Accumulator, tracer: Tracer, factor: int, masked, fr
     else:  # the binned deposits carry the cell's noise (most of its sum of squares)
         cells = few[acc.binned_power_sq[few] >= LATTICE_NOISE_SHARE * m.power_sq[few]]
     reaching = acc.tags_into(cells, "lattice_bin")
-    bins = bins_of.with_neighbours(reaching) if len(reaching) else reaching
+    bins = bins_of.with_neighbours(reaching)
     per_bin = max(1, int(round(factor * bins_of.num_rays / bins_of.num_bins)))
     out = {"factor": int(factor), "undersampled_cells": int(len(few)), "cells_swapped": int(len(cells)),
            "bins_reaching": int(len(reaching)),

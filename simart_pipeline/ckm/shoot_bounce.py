@@ -578,7 +578,6 @@ class Tracer:
             self.scat = (mi.Float(s_tab.astype(np.float32)), mi.Float(kx_tab.astype(np.float32)),
                          mi.UInt32(pat_tab))
         # p = |E|^2 * solid angle / |cos| * (lambda / 4 pi)^2 / cell area (RadioMapSolver's estimator)
-        self.tube_c = opaque(4 * np.pi / num_rays)  # a lattice ray's tube: 4 pi / N sr
         self.lattice_bins: LatticeBins | None = None  # set: the lattice rays' deposits are tagged with their bin
         # True: rays stop at a diffuse reflection and diffuse hits make no connections (the
         # lattice's second pass re-traces the part of its bins that never scattered diffusely)
@@ -596,7 +595,7 @@ class Tracer:
         # (a fifth of the first hits' transmitted rays in the street canyon)
         self.floor_z = opaque(min(float(self.scene.bbox().min.z) + 1e-3, float(np.min(grid.heights))))
         self._power_per_sr = (radio.wavelength_m / (4 * np.pi)) ** 2 / (grid.dx * grid.dy)
-        self.power_scale = opaque((4 * np.pi / num_rays) * self._power_per_sr)
+        self.set_solid_angle(4 * np.pi / num_rays)  # a lattice ray's: 4 pi / N sr (tube_c, power_scale)
         self.nee = None
         if self.diffuse and diffuse_connections > 0:
             self._setup_connections(float(diffuse_connections))
@@ -629,13 +628,12 @@ class Tracer:
         self.tube_c = self.dr.opaque(self.mi.Float, float(solid_angle_sr))
         self.power_scale = self.dr.opaque(self.mi.Float, float(solid_angle_sr) * self._power_per_sr)
 
-    def launch(self, start: int, stop: int, indices: np.ndarray | None = None, directions: np.ndarray | None = None,
-               bins: np.ndarray | None = None):
+    def launch(self, start: int, stop: int, indices: np.ndarray | None = None, directions: np.ndarray | None = None):
         """Ray state of lattice points ``start..stop-1``, or of the lattice points ``indices``
         (uint32), or of unit ``directions`` ``[n, 3]`` (float64, world) whose random numbers are
         keyed by ``indices`` (numbers outside the lattice's ``0..num_rays-1``: streams of their
-        own). With :attr:`lattice_bins` set every ray carries its bin (``bins``, or the lattice
-        point's, :meth:`LatticeBins.bin_of`) as the tag ``lattice_bin``."""
+        own). With :attr:`lattice_bins` set every lattice ray carries its bin
+        (:meth:`LatticeBins.bin_of`) as the tag ``lattice_bin``."""
         dr, mi = self.dr, self.mi
         if directions is not None:
             u = np.asarray(directions, np.float64)
@@ -669,9 +667,10 @@ class Tracer:
             idx = dr.arange(mi.UInt32, start, stop) if indices is None else mi.UInt32(np.asarray(indices, np.uint32))
             st.update(idx=idx, anchor=dr.zeros(mi.Float, n))
         if self.lattice_bins is not None:
-            if bins is None:
-                bins = self.lattice_bins.bin_of(np.arange(start, stop) if indices is None else indices)
-            st["lattice_bin"] = mi.UInt32(np.asarray(bins, np.uint32))
+            if directions is not None:
+                raise ValueError("launch: rays of given directions belong to no lattice bin (unset lattice_bins)")
+            bins = self.lattice_bins.bin_of(np.arange(start, stop) if indices is None else indices)
+            st["lattice_bin"] = mi.UInt32(bins)
         return st
 
     def _footprint(self, st, t_h):
