@@ -80,8 +80,12 @@ def test_replayed_rays_are_the_first_pass_and_only_undersampled_cells_change(tmp
             radio.scene.objects[k].radio_material.scattering_coefficient = s_
     x, y = _axes(-4.0, 16, -12.0, 12, 2.0)
     args = (radio, np.array([0.0, 1.0, 8.0]), np.zeros(3), x, y, np.array([1.5]), 6_000, 2)
+    # host sums (the CPU's, bitwise repeatable; the device's are checked against them below)
     kw = dict(refraction=mechanisms == "refraction", diffuse_reflection=mechanisms == "diffuse",
-              rx_polarization="V", codebook=np.ones((1, 1), complex))
+              rx_polarization="V", codebook=np.ones((1, 1), complex), accumulate_on_device=False)
+    # a GPU compiles a replayed ray's set-up in another kernel than the first pass's and may round
+    # its float32 direction differently (H200: a cell's replayed sum 2e-9 off); LLVM: the same bits
+    rtol = 1e-12 if engine.init().startswith("llvm") else 1e-6
     seen = {}
     original = op._Accumulator.replace
 
@@ -99,20 +103,21 @@ def test_replayed_rays_are_the_first_pass_and_only_undersampled_cells_change(tmp
     cells = seen["cells"]
     assert info["cells_swapped"] == len(cells) >= 5 and info["bins"] >= info["bins_reaching"] >= 1
     assert info["new_rays"] >= 8 * 0.5 * info["replayed_rays"]
-    np.testing.assert_allclose(seen["old"].power[cells], seen["binned"], rtol=1e-12, atol=0)
+    np.testing.assert_allclose(seen["old"].power[cells], seen["binned"], rtol=rtol, atol=0)
     if mechanisms == "diffuse":  # the diffused part stays the first pass's
         assert (seen["binned"] < seen["before"]["power"] * (1 - 1e-9)).any()
     else:
         assert info["cells_swapped"] == info["undersampled_cells"]
         np.testing.assert_array_equal(seen["old"].count[cells], seen["before"]["count"])
         for f in ("power", "p_excess_delay_s"):
-            np.testing.assert_allclose(getattr(seen["old"], f)[cells], seen["before"][f], rtol=1e-12, atol=0)
+            np.testing.assert_allclose(getattr(seen["old"], f)[cells], seen["before"][f], rtol=rtol, atol=0)
     flat = np.zeros(first.count.size, bool)
     flat[cells] = True
     other = ~flat.reshape(first.count.shape)
+    same = (np.testing.assert_array_equal if rtol < 1e-9 else
+            lambda a, b, err_msg: np.testing.assert_allclose(a, b, rtol=rtol, err_msg=err_msg))
     for f in fields(CellMoments):
-        np.testing.assert_array_equal(getattr(second, f.name)[other], getattr(first, f.name)[other],
-                                      err_msg=f.name)
+        same(getattr(second, f.name)[other], getattr(first, f.name)[other], err_msg=f.name)
     assert (second.count[~other] > first.count[~other]).mean() > 0.5
     # the same call again: the same bits (hashed shifts and random streams)
     again = op.one_pass_moments(*args, **kw, lattice_resample_factor=8)
