@@ -1091,9 +1091,22 @@ def run_scene(name: str, spec: dict, num_rays: int, sets, quick: bool, seed: int
                      "points_per_side": (points_per_side or {}).get(s, REFERENCE_POINTS_PER_SIDE[s])}
             out["sets"][s] = run_set(name, s, xml, spec, num_rays, order, sizes, ray_counts, sample)
             out["sets"][s]["wall_s"] = round(time.perf_counter() - t0, 1)
+            _release_memory()
             log(f"{name} {s}: {out['sets'][s]['wall_s']} s", flush=True)
     out["grid"].update({k: sample[k] for k in ("cells_with_outdoor_area", "cells_wholly_outdoor") if k in sample})
     return out
+
+
+def _release_memory() -> None:
+    """Between sets: each set's one-pass buffers have sizes of their own, and Dr.Jit keeps freed
+    blocks cached for reuse, so a run kept every set's (the full run's peak was 22.4 GB on a
+    24 GB machine). A set's first call refills it (untimed, or with its compilation in a quick run)."""
+    import gc
+
+    import drjit as dr
+
+    gc.collect()  # the set's radio scene and arrays, some of them held in reference cycles
+    dr.flush_malloc_cache()
 
 
 def largest_spread_p50(e: dict) -> float | None:
