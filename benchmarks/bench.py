@@ -224,7 +224,7 @@ def _prepare_session(quick: bool, out: Path, env: dict) -> None:
     cmd = [sys.executable, "-m", "simart_pipeline.cli", "run", str(_session_scene(quick)), "--weather", "sunny",
            "--tile", "r0c0", "--data", str(out / "data")]
     with open(out / "prepare.txt", "w") as log:
-        rc = _run(cmd, {**env, "DAGSTER_HOME": str(home)}, log, subprocess.STDOUT, 300 if quick else 900)
+        rc, _ = _run(cmd, {**env, "DAGSTER_HOME": str(home)}, log, subprocess.STDOUT, 300 if quick else 900)
     if rc:
         raise subprocess.CalledProcessError(rc, cmd)
 
@@ -238,6 +238,8 @@ def _bag_out(out: Path) -> Path:
 # 16x map, the 1e8 ray-count points). Its defaults cost about 4,500 s on a 2-core machine (session 18:
 # the 5 x 5 diffraction reference 500-1,000 s a scene, the "all" set's diffuse reference 1 s a
 # receiver), more than this whole run's hour; `python -m benchmarks.ckm_solver --out DIR` runs them.
+MEMORY_POLL_S = 0.2  # how often a running benchmark's processes' peak memory is read
+
 CKM_SOLVER_BENCH_ARGS = ["--cells", "los_specular=300", "diffraction=100", "all=20", "--converged-cells", "0",
                          "--no-converged-map", "--ray-counts", "1e5", "1e6", "1e7"]
 
@@ -352,16 +354,52 @@ def _json_from_stdout(text: str):
     return None
 
 
-def _run(cmd: list[str], env: dict, stdout, stderr, timeout: float) -> int:
-    """Run ``cmd`` in its own process group; past ``timeout`` the whole group (the benchmark and
-    whatever it started, e.g. ``simart run``) is killed and TimeoutExpired raised."""
-    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=stdout, stderr=stderr, start_new_session=True)
+def _group_peak_bytes(pgid: int) -> int | None:
+    """The largest peak resident memory (``VmHWM``) of the live processes of group ``pgid``; None
+    where ``/proc`` cannot tell. (``wait4``'s ``ru_maxrss`` cannot serve: a child started by
+    fork or vfork inherits the parent's peak at exec, so it would report the caller's.)"""
+    peak = None
     try:
-        return proc.wait(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
-        raise
+        entries = os.listdir("/proc")
+    except OSError:
+        return None
+    for e in entries:
+        if not e.isdigit():
+            continue
+        try:
+            with open(f"/proc/{e}/stat") as f:
+                stat = f.read()
+            if int(stat[stat.rindex(")") + 2:].split()[2]) != pgid:  # state ppid pgrp
+                continue
+            with open(f"/proc/{e}/status") as f:
+                kb = next((int(line.split()[1]) for line in f if line.startswith("VmHWM")), None)
+        except (OSError, ValueError):
+            continue  # gone meanwhile, or a kernel thread
+        if kb is not None:
+            peak = max(peak or 0, kb * 1024)
+    return peak
+
+
+def _run(cmd: list[str], env: dict, stdout, stderr, timeout: float) -> tuple[int, int | None]:
+    """Run ``cmd`` in its own process group: (exit status, peak resident memory in bytes or None).
+    Past ``timeout`` the whole group (the benchmark and whatever it started, e.g. ``simart run``)
+    is killed and TimeoutExpired raised. The peak is the largest of the group's processes' own
+    (read every :data:`MEMORY_POLL_S`, so a process that lives shorter than that may be missed):
+    what a laptop must hold at least."""
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=stdout, stderr=stderr, start_new_session=True)
+    deadline = time.monotonic() + timeout
+    peak = None
+    while True:
+        seen = _group_peak_bytes(proc.pid)
+        if seen is not None:
+            peak = max(peak or 0, seen)
+        try:
+            return proc.wait(timeout=MEMORY_POLL_S), peak
+        except subprocess.TimeoutExpired:
+            if time.monotonic() > deadline:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+                raise subprocess.TimeoutExpired(cmd, timeout) from None
 
 
 def run_one(b: Bench, quick: bool, out: Path, env: dict | None = None, module_prefix: str = "benchmarks.") -> dict:
@@ -369,7 +407,7 @@ def run_one(b: Bench, quick: bool, out: Path, env: dict | None = None, module_pr
     wall time, exit status, results."""
     env = dict(os.environ if env is None else env)
     d = out / b.name
-    rec = {"name": b.name, "title": b.title, "status": None, "reason": None, "wall_s": None,
+    rec = {"name": b.name, "title": b.title, "status": None, "reason": None, "wall_s": None, "peak_memory_gb": None,
            "returncode": None, "prepare_s": None, "command": None, "results": None, "report": None, "plots": []}
     missing = [str(p) for p in b.needs if not Path(p).exists()]
     if missing:
@@ -397,8 +435,9 @@ def run_one(b: Bench, quick: bool, out: Path, env: dict | None = None, module_pr
             rec["prepare_s"] = round(time.perf_counter() - t0, 2)
         t0 = time.perf_counter()
         with open(d / "stdout.txt", "w") as so, open(d / "stderr.txt", "w") as se:
-            rc = _run(cmd, env, so, se, timeout)
+            rc, peak = _run(cmd, env, so, se, timeout)
         rec["returncode"] = rc
+        rec["peak_memory_gb"] = None if peak is None else round(peak / 1e9, 2)
         rec["status"] = "ok" if rc == 0 else "failed"
         if rc != 0:
             rec["reason"] = f"exit status {rc}: " + (_tail(d / "stderr.txt", 6) or "(no stderr)")
@@ -482,11 +521,13 @@ def report_md(results: dict, benchmarks: list[Bench] | None = None) -> str:
                            if m.get("cuda_gpu") else "none on this machine, so the CUDA variant was not measured "
                            "(no CPU/GPU ratio)."),
              "", f"**{count['ok']} ran, {count['failed']} failed, {count['skipped']} skipped.**", "",
-             "| benchmark | status | wall (s) | why |", "|---|---|---|---|"]
+             "| benchmark | status | wall (s) | peak memory (GB) | why |", "|---|---|---|---|---|"]
     for r in recs:
         why = (r["reason"] or "").splitlines()[0] if r["reason"] else ""
         status = {"ok": "ok", "failed": "**FAILED**", "skipped": "**SKIPPED**"}[r["status"]]
-        lines.append(f"| {r['name']} | {status} | {r['wall_s'] if r['wall_s'] is not None else '–'} | {why} |")
+        peak = r.get("peak_memory_gb")  # runs before session 30 did not record it
+        lines.append(f"| {r['name']} | {status} | {r['wall_s'] if r['wall_s'] is not None else '–'} | "
+                     f"{peak if peak is not None else '–'} | {why} |")
     if "targets" in results:
         lines += ["", "## Targets of every issue", "", targets.table_md(results["targets"]).rstrip()]
     for r in recs:

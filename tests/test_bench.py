@@ -80,11 +80,13 @@ def fake_benchmarks(tmp_path, monkeypatch):
     mods.mkdir()
     (mods / "fake_fail.py").write_text("import sys\nprint('boom: the scene exploded', file=sys.stderr)\nsys.exit(3)\n")
     (mods / "fake_ok.py").write_text(textwrap.dedent("""
-        import json, sys
+        import json, sys, time
         from pathlib import Path
         out = Path(sys.argv[sys.argv.index('--out') + 1])
         quick = '--quick' in sys.argv
         (out / 'results.json').write_text(json.dumps({'speedup_vs_loop': 7.5, 'quick': quick}))
+        held = b'x' * 300_000_000  # written, so resident: the peak the report must show
+        time.sleep(1.0)  # held past the bench's reading interval
         """))
     (mods / "fake_slow.py").write_text("import time\ntime.sleep(60)\n")
     monkeypatch.setenv("PYTHONPATH", f"{mods}:{bench.ROOT}")
@@ -113,6 +115,9 @@ def test_failed_benchmark_is_reported_as_failed(tmp_path, fake_benchmarks):
     assert str(tmp_path / "no" / "osm") in recs["fake_nodata"]["reason"]
     assert recs["fake_noextra"]["reason"].startswith("not installed")
     assert (out / "fake_fail" / "stderr.txt").read_text().strip() == "boom: the scene exploded"
+    # each run's peak resident memory, from the kernel: the 300 MB the working one held
+    assert 0.3 <= recs["fake_ok"]["peak_memory_gb"] < 0.6
+    assert recs["fake_fail"]["peak_memory_gb"] < 0.1 and recs["fake_nodata"]["peak_memory_gb"] is None
     # the machine is named
     m = saved["machine"]
     assert m["cores"] >= 1 and m["python"] == ".".join(map(str, sys.version_info[:3]))
@@ -122,6 +127,7 @@ def test_failed_benchmark_is_reported_as_failed(tmp_path, fake_benchmarks):
     md = (out / "report.md").read_text()
     assert "1 ran, 2 failed, 2 skipped" in md
     assert "| fake_fail | **FAILED** |" in md
+    assert f"| fake_ok | ok | {recs['fake_ok']['wall_s']} | {recs['fake_ok']['peak_memory_gb']} |" in md
     assert "> **FAILED: exit status 3: boom: the scene exploded**" in md
     assert "> **SKIPPED: input missing:" in md and "> **SKIPPED: not installed: no_such_module_xyz" in md
     assert "speedup_vs_loop: 7.5" in md
