@@ -1103,10 +1103,8 @@ def _release_memory() -> None:
     24 GB machine). A set's first call refills it (untimed, or with its compilation in a quick run)."""
     import gc
 
-    import drjit as dr
-
     gc.collect()  # the set's radio scene and arrays, some of them held in reference cycles
-    dr.flush_malloc_cache()
+    engine.release_memory_cache()
 
 
 def largest_spread_p50(e: dict) -> float | None:

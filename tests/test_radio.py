@@ -182,7 +182,7 @@ def _resident_bytes() -> int:
 def test_a_trace_hands_its_solver_buffers_back(tiny_scene, tmp_path):
     """PathSolver's buffers are sized by each call, and Dr.Jit caches freed blocks for reuse: a
     process that traced calls of many sizes kept them all (22 GB in benchmarks.ckm_solver). After
-    a trace the process holds little more than before it (without the release: 0.85 GB more here,
+    a trace the process holds little more than before it (without the release: 0.87 GB more here,
     most of the solver's estimated 1.15 GB)."""
     cfg = _cfg(tiny_scene, _iso(samples_per_src=2_000_000, max_depth=3))
     xml = _write_scene(tmp_path / "g", {"ground": (_ground(400.0), "concrete")}, 0.2)

@@ -331,7 +331,10 @@ class RadioScene:
                 f"tx{i}", position=vec(tx_positions[i]), orientation=vec(tx_orientations_rad[i]),
                 velocity=None if tx_velocities is None else vec(tx_velocities[i])))
         chunks = []
-        _release_solver_memory()  # what a one-pass or a render left cached: not on top of the solver's
+        # PathSolver's buffers are sized per call: Dr.Jit's cache of freed blocks handed back before
+        # (what a one-pass or a render left cached does not add to the solver's peak) and after
+        # (0.39 against 0.40 s for one receiver's call, canyon, every mechanism)
+        engine.release_memory_cache()
         try:
             step = receivers_per_call(rt_cfg, deterministic)
             limit = int(rt_cfg.max_num_paths_per_src)
@@ -348,7 +351,7 @@ class RadioScene:
                 self.scene.remove(f"tx{i}")
             for name in list(self.scene.receivers):
                 self.scene.remove(name)
-            _release_solver_memory()
+            engine.release_memory_cache()
         d = _concat(chunks) if len(chunks) > 1 else chunks[0]
         names = {f.name for f in fields(TracedPaths)}
         return TracedPaths(**{k: v for k, v in d.items() if k in names})
@@ -457,20 +460,6 @@ def merge_traced(parts: list[tuple[np.ndarray, TracedPaths]], num_rx: int) -> Tr
                  for _, p in parts])
     back = np.argsort(order, kind="stable")  # concatenated rows back into receiver order
     return TracedPaths(**{k: v[back] for k, v in d.items()})
-
-
-def _release_solver_memory() -> None:
-    """Hands Dr.Jit's cache of freed blocks back to the system, before and after a trace.
-    PathSolver sizes its buffers by each call (receivers, samples, candidates), so cached blocks
-    seldom fit the next call and a process kept the high-water mark of every size it had seen
-    (``benchmarks.ckm_solver`` reached 22 GB; Munich's every-mechanism reference alone left 4.6 GB
-    cached, 1.1 GB live); before, so that what a one-pass left cached does not add to the solver's
-    peak. One receiver's call costs the same with it (0.39 against 0.40 s, canyon, every
-    mechanism). The one-pass does not flush: its next call of the same shape reuses the cache (a
-    1e7-ray call after a flush takes 3 s longer on 2 cores, its pages faulted in again)."""
-    import drjit as dr
-
-    dr.flush_malloc_cache()
 
 
 def _count_candidates(solver) -> list[int]:
