@@ -13,6 +13,13 @@ revision ``REV`` (extracted with ``git archive``, run by this interpreter and it
 fresh data root and instance), before and after this commit's first run: issue 15's "figures of the
 commit before, measured in the same run". ``first_run_speedup_vs_baseline`` is the baseline's mean
 wall time over this commit's, from ``--repeats`` first runs of each (default 2), alternated.
+
+Like for like: where a default of the :data:`PINNED_SECTIONS` sections differs between the two
+codes (the ray-tracing mechanisms turned on since a baseline, say) and the scene does not set it,
+both codes' first runs read a copy of the scene with the baseline's value written in
+(``baseline.pinned``), so the ratio is of the same work. Keys the baseline does not know keep this
+commit's default (``baseline.new_keys``). This commit's first run with its own defaults stays the
+``first run`` step.
 """
 
 from __future__ import annotations
@@ -38,6 +45,13 @@ SIMART = [sys.executable, "-m", "simart_pipeline.cli"]
 TARGET_UNCHANGED_WALL = 0.10   # issue 15: the whole command, start-up included
 TARGET_UNCHANGED_IN_PROCESS = 0.02
 TARGET_FIRST_RUN_SPEEDUP = 1.3  # issue 15: against the baseline's first run (--baseline)
+# Config sections whose defaults a baseline comparison pins to the baseline's (see the module doc)
+PINNED_SECTIONS = ("ray_tracing", "ckm")
+_DEFAULTS_SCRIPT = (
+    "import json, sys\n"
+    "from simart_pipeline.config import SceneConfig\n"
+    "print(json.dumps({s: SceneConfig.model_fields[s].default.model_dump(mode='json') for s in sys.argv[1:]\n"
+    "                  if s in SceneConfig.model_fields}))\n")
 
 
 def _edit(scene: Path, edit) -> None:
@@ -103,6 +117,38 @@ def _first_run_of(code: Path | None, scene: Path, tmp: Path, tag: str, base_env:
         shutil.rmtree(home, ignore_errors=True)
 
 
+def config_defaults(code: Path | None, env: dict, sections=PINNED_SECTIONS) -> dict:
+    """{section: {key: default}} of the scene config's ``sections`` in the code at ``code`` (None:
+    this checkout), read by this interpreter in a new process (a baseline's modules must not meet
+    this checkout's)."""
+    run_env = dict(env)
+    if code is not None:
+        run_env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(code), env.get("PYTHONPATH")]))
+    res = subprocess.run([sys.executable, "-c", _DEFAULTS_SCRIPT, *sections], capture_output=True, text=True,
+                         env=run_env, cwd=code)
+    if res.returncode != 0:
+        raise SystemExit(f"reading the config defaults of {code or 'this checkout'} failed:\n{res.stderr}")
+    return json.loads(res.stdout)
+
+
+def pin_baseline_defaults(raw: dict, baseline: dict, this: dict) -> tuple[dict, list[str]]:
+    """The scene config ``raw`` with the baseline's default written in wherever a key of a section
+    of ``baseline`` ({section: {key: default}}) has another default in ``this`` and ``raw`` does not
+    set it: (what was pinned, {"section.key": value}; the keys only ``this`` knows, which keep its
+    default). ``raw`` is changed in place."""
+    pinned, new_keys = {}, []
+    for section, base in baseline.items():
+        ours = this.get(section, {})
+        given = raw.get(section) or {}
+        for key, value in ours.items():
+            if key not in base:
+                new_keys.append(f"{section}.{key}")
+            elif key not in given and base[key] != value:
+                raw.setdefault(section, {})[key] = base[key]
+                pinned[f"{section}.{key}"] = base[key]
+    return pinned, sorted(new_keys)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", required=True, help="directory for results.json and report.md")
@@ -127,13 +173,25 @@ def main(argv=None) -> int:
         steps, baseline = {}, None
         if args.baseline:
             code = _extract(args.baseline, tmp / "baseline_code")
-            baseline = {"rev": args.baseline, "runs": [_first_run_of(code, scene, tmp, "b0", env)]}
+            like = tmp / "like_for_like" / src.name  # the scene with the baseline's defaults written in
+            shutil.copytree(src, like)
+            pinned, new_keys = {}, []
+
+            def pin(raw):
+                p, n = pin_baseline_defaults(raw, config_defaults(code, env), config_defaults(None, env))
+                pinned.update(p)
+                new_keys.extend(n)
+            _edit(like, pin)
+            baseline = {"rev": args.baseline, "pinned": pinned, "new_keys": new_keys,
+                        "runs": [_first_run_of(code, like, tmp, "b0", env)]}
         steps["first run"] = _run(scene, data, env)
         if baseline is not None:  # baseline, this commit, baseline, this commit ...: drift shows in both
-            baseline["this_commit_runs"] = [steps["first run"]]
+            # this commit's own first run is the same work when nothing was pinned
+            baseline["this_commit_runs"] = [steps["first run"] if not baseline["pinned"]
+                                            else _first_run_of(None, like, tmp, "c0", env)]
             for k in range(1, args.repeats):
-                baseline["runs"].append(_first_run_of(code, scene, tmp, f"b{k}", env))
-                baseline["this_commit_runs"].append(_first_run_of(None, scene, tmp, f"c{k}", env))
+                baseline["runs"].append(_first_run_of(code, like, tmp, f"b{k}", env))
+                baseline["this_commit_runs"].append(_first_run_of(None, like, tmp, f"c{k}", env))
         steps["unchanged rerun"] = _run(scene, data, env)
         sensor = {}
 
@@ -181,7 +239,9 @@ def main(argv=None) -> int:
               f"{unchanged.get('ratio_to_first_in_process', float('nan')):.2%} excluding start-up "
               f"(target <= {TARGET_UNCHANGED_IN_PROCESS:.0%}: {'met' if t['unchanged_in_process_met'] else 'missed'})."]
     if baseline is not None:
-        lines += ["", f"First run against `{baseline['rev']}`'s code, {len(baseline['runs'])} of each alternated "
+        same = (", both with the baseline's defaults of " + ", ".join(f"`{k}: {v}`" for k, v in baseline["pinned"].items())
+                if baseline["pinned"] else "")
+        lines += ["", f"First run against `{baseline['rev']}`'s code{same}, {len(baseline['runs'])} of each alternated "
                   f"(baseline first): {', '.join(str(r['wall_s']) for r in baseline['runs'])} s against "
                   f"{', '.join(str(r['wall_s']) for r in baseline['this_commit_runs'])} s; this commit "
                   f"{baseline['first_run_speedup_vs_baseline']:.3f}x faster (target >= "

@@ -4,6 +4,7 @@ how they compute and write their figures. No wall-clock time is asserted."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -539,31 +540,57 @@ def test_bench_runs_ckm_solver_with_fewer_cells_and_no_convergence_diagnostics()
 
 def test_rerun_alternates_baseline_and_this_commit_and_the_bench_asks_for_it(tmp_path, monkeypatch):
     """--baseline REV --repeats 3: baseline and this commit's first runs alternate, baseline first,
-    and the speed-up is the ratio of their means. The full bench passes it where this clone has
-    the revision (a shallow clone has not: then it leaves it out and the target reads unmeasured)."""
+    and the speed-up is the ratio of their means. Where a default differs between the two codes
+    and the scene leaves it open (the seed, here; the tiny scene sets diffraction) both read a copy of the scene with the baseline's value written in, and
+    this commit's own first run is not one of them; where none differs its first run is. The full
+    bench passes --baseline where this clone has the revision (a shallow clone has not: then it
+    leaves it out and the target reads unmeasured)."""
+    import yaml
+
     from benchmarks import bench, rerun
 
-    order = []
     walls = {"b": 120.0, "c": 90.0}
+    this_defaults = {"ray_tracing": {"diffraction": True, "seed": 0, "max_depth": 3}, "ckm": {"num_rays": 10}}
+    for base_defaults, expected_order, pinned in (
+            ({"ray_tracing": {"diffraction": False, "seed": 7, "max_depth": 5}, "ckm": {"num_rays": 10}},
+             ["b0", "this", "c0", "b1", "c1", "b2", "c2"], {"ray_tracing.seed": 7}),
+            (this_defaults, ["b0", "this", "b1", "c1", "b2", "c2"], {})):
+        order, scenes = [], {}
 
-    def fake_first_run(code, scene, tmp, tag, env):
-        order.append(tag)
-        return {"wall_s": walls[tag[0]] + len(order), "in_process_s": 80.0, "computed": []}
+        def fake_first_run(code, scene, tmp, tag, env):
+            order.append(tag)
+            scenes[tag] = yaml.safe_load((scene / "scene.yaml").read_text())
+            return {"wall_s": walls[tag[0]] + len(order), "in_process_s": 80.0, "computed": []}
 
-    def fake_run(scene, data, env, cwd=None):
-        order.append("this")
-        return {"wall_s": 90.0 + len(order), "in_process_s": 80.0, "computed": []}
+        def fake_run(scene, data, env, cwd=None):
+            order.append("this")
+            scenes.setdefault("this", yaml.safe_load((scene / "scene.yaml").read_text()))
+            return {"wall_s": 90.0 + len(order), "in_process_s": 80.0, "computed": []}
 
-    monkeypatch.setattr(rerun, "_extract", lambda rev, into: into)
-    monkeypatch.setattr(rerun, "_first_run_of", fake_first_run)
-    monkeypatch.setattr(rerun, "_run", fake_run)
-    assert rerun.main(["--out", str(tmp_path), "--scene", str(TINY), "--baseline", "abc", "--repeats", "3"]) == 0
-    assert order[:6] == ["b0", "this", "b1", "c1", "b2", "c2"]  # then the reruns
-    r = json.loads((tmp_path / "results.json").read_text())["baseline"]
-    base = [120.0 + 1, 120.0 + 3, 120.0 + 5]
-    this = [90.0 + 2, 90.0 + 4, 90.0 + 6]
-    assert r["first_run_speedup_vs_baseline"] == round(np.mean(base) / np.mean(this), 3)
-    assert "3 of each alternated" in (tmp_path / "report.md").read_text()
+        monkeypatch.setattr(rerun, "_extract", lambda rev, into: into)
+        monkeypatch.setattr(rerun, "_first_run_of", fake_first_run)
+        monkeypatch.setattr(rerun, "_run", fake_run)
+        monkeypatch.setattr(rerun, "config_defaults",
+                            lambda code, env, b=base_defaults: b if code is not None else this_defaults)
+        out = tmp_path / f"out{len(pinned)}"
+        assert rerun.main(["--out", str(out), "--scene", str(TINY), "--baseline", "abc", "--repeats", "3"]) == 0
+        n = len(expected_order)
+        assert order[:n] == expected_order  # then the reruns
+        r = json.loads((out / "results.json").read_text())["baseline"]
+        assert r["pinned"] == pinned
+        base = [walls["b"] + 1 + order.index(f"b{k}") for k in range(3)]
+        this = [(walls["c"] if f"c{k}" in order else 90.0) + 1 + order.index(f"c{k}" if f"c{k}" in order else "this")
+                for k in range(3)]
+        assert r["first_run_speedup_vs_baseline"] == round(np.mean(base) / np.mean(this), 3)
+        report = (out / "report.md").read_text()
+        assert "3 of each alternated" in report and ("`ray_tracing.seed: 7`" in report) == bool(pinned)
+        tiny_rt = yaml.safe_load((TINY / "scene.yaml").read_text())["ray_tracing"]
+        assert "seed" not in tiny_rt and tiny_rt["diffraction"] is False
+        for tag in ("b0", "b1", "c1"):  # the compared runs read the pinned copy, the step its own scene
+            rt = scenes[tag]["ray_tracing"]
+            assert rt.get("seed", "unset") == (7 if pinned else "unset")
+            assert rt["max_depth"] == tiny_rt["max_depth"] and rt["diffraction"] is False
+        assert scenes["this"]["ray_tracing"] == tiny_rt
     with pytest.raises(SystemExit):
         rerun.main(["--out", str(tmp_path), "--baseline", "abc", "--repeats", "0"])
 
@@ -573,6 +600,30 @@ def test_rerun_alternates_baseline_and_this_commit_and_the_bench_asks_for_it(tmp
     monkeypatch.setattr(bench, "RERUN_BASELINE_REV", "0" * 40)
     assert bench._rerun_args(False, tmp_path) == ["--out", str(tmp_path)]
     assert bench._rerun_args(True, tmp_path) == ["--out", str(tmp_path), "--scene", str(bench.TINY)]
+
+
+def test_pin_baseline_defaults_writes_only_what_differs_and_the_scene_leaves_open():
+    """rerun.pin_baseline_defaults, known answer: a default that differs and the scene does not set
+    is written in; one the scene sets, or that is equal, is not; a key the baseline lacks is listed."""
+    from benchmarks.rerun import pin_baseline_defaults
+
+    raw = {"ray_tracing": {"max_depth": 3}, "name": "x"}
+    pinned, new = pin_baseline_defaults(
+        raw, {"ray_tracing": {"max_depth": 5, "diffraction": False, "seed": 0}, "ckm": {"mode": "reference"}},
+        {"ray_tracing": {"max_depth": 4, "diffraction": True, "seed": 0, "batch": 1}, "ckm": {"mode": "fast"}})
+    assert pinned == {"ray_tracing.diffraction": False, "ckm.mode": "reference"}
+    assert raw == {"ray_tracing": {"max_depth": 3, "diffraction": False}, "name": "x", "ckm": {"mode": "reference"}}
+    assert new == ["ray_tracing.batch"]
+
+
+def test_config_defaults_reads_this_checkouts_models():
+    """rerun.config_defaults in a new process: this checkout's own defaults of the pinned sections."""
+    from benchmarks.rerun import config_defaults
+    from simart_pipeline.config import SceneConfig
+
+    d = config_defaults(None, dict(os.environ))
+    assert d["ray_tracing"] == SceneConfig.model_fields["ray_tracing"].default.model_dump(mode="json")
+    assert d["ckm"]["num_rays"] == SceneConfig.model_fields["ckm"].default.num_rays
 
 
 def test_centre_and_pooled_reference_layers_known_answer(tiny_built):
