@@ -67,7 +67,7 @@ def test_quick_run_does_not_judge_targets_named_for_the_full_scene():
     assert row["met"] is None and row["figure"] == 0.5 and "quick" in row["why"]
 
 
-def _ckm_set(coverage=99.5, gain=(0.2, 2.0), top3=99.5, ratio=1.5, equal_error_ratio=0.9):
+def _ckm_set(coverage=99.5, gain=(0.2, 2.0), top3=99.5, ratio=1.5, equal_error_ratio=0.9, first_order_ratio=1.2):
     """A ckm_solver mechanism set's results, only the figures the targets read."""
     e = {"path_gain_db": {"p50": gain[0], "p95": gain[1]}, "rms_delay_spread_ns": {"p50": 1.0},
          "best_beam_agreement_pct": 96.0, "best_beam_top3_agreement_pct": top3,
@@ -76,7 +76,9 @@ def _ckm_set(coverage=99.5, gain=(0.2, 2.0), top3=99.5, ratio=1.5, equal_error_r
     return {"coverage": {"covered_of_reached_pct": coverage}, "errors_vs_cell_points": e,
             "errors_vs_cell_points_pathsolver_diffuse_model": like,
             "errors_vs_centre": {"toa_ns": {"p50": 0.1}}, "speedup_vs_per_cell_loop": 150.0,
-            "radio_map_solver": {"one_pass_over_radio_map_time": ratio, "at_one_pass_rays": {
+            "radio_map_solver": {"one_pass_over_radio_map_time": ratio,
+                                 "first_order_diffraction_one_pass": {"over_radio_map_time": first_order_ratio},
+                                 "at_one_pass_rays": {
                 "path_gain_agreement_with_one_pass": {"abs_diff_db": {"p50": 0.05, "p95": 0.5}}},
                 "path_gain_agreement_like_for_like": {"abs_diff_db": {"p50": 0.05, "p95": 0.5}},
                 "equal_error": {"one_pass_over_radio_map_time_at_equal_error": equal_error_ratio,
@@ -87,7 +89,7 @@ def test_ckm_solver_targets_read_each_scene_and_mechanism_set():
     from benchmarks import ckm_solver as cs
 
     sets = {"los_specular": _ckm_set(ratio=3.0), **{m: _ckm_set() for m in cs.TARGET_SETS}}
-    sets[cs.TARGET_SETS[0]] = _ckm_set(coverage=80.0, top3=99.0)
+    sets[cs.TARGET_SETS[0]] = _ckm_set(coverage=80.0, top3=99.0, ratio=3.0, first_order_ratio=1.9)
     res = _bench("full", ckm_solver={"scenes": {"street_canyon": {"sets": sets}, "urban": {"sets": {
         cs.TARGET_SETS[0]: _ckm_set(equal_error_ratio=None)}}, "munich": {"sets": {}}}})
     rows = targets.evaluate(res)
@@ -104,6 +106,10 @@ def test_ckm_solver_targets_read_each_scene_and_mechanism_set():
     assert _row(rows, 8, "street_canyon: path gain p50")["met"] is True
     # a scene without the set: not judged, with why
     assert "not in this run" in _row(rows, 17, f"munich, mechanisms `{ms}`, against PathSolver with the same: a value in")["why"]
+    # every chain against RadioMapSolver's fewer (3.0x) and like for like (1.9x): two rows
+    assert _row(rows, 17, f"{pre} time within 2x of RadioMapSolver's (same")["met"] is False
+    lfl = _row(rows, 17, f"{pre} time within 2x of RadioMapSolver's like for like")
+    assert lfl["met"] is True and lfl["figure"] == 1.9
     equal = f"mechanisms `{ms}`, against PathSolver with the same: time within 2x of RadioMapSolver's at equal"
     assert _row(rows, 17, f"street_canyon, {equal}")["met"] is True
     # measured, and no one-pass ray count reached RadioMapSolver's error: not met, not "n/a"
