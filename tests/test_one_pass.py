@@ -1124,16 +1124,18 @@ def test_pilot_and_downward_arc_move_samples_not_the_estimate(monkeypatch):
     assert np.median(np.abs(err)) < 0.05 and np.percentile(np.abs(err), 95) < 0.5 and abs(err.mean()) < 0.05, err
 
 
-def test_lit_wedges_from_the_tracer_hits_equal_those_of_rays_cast_again(monkeypatch):
+@pytest.mark.parametrize("drawn", [{}, {"refraction": True}], ids=["mirror", "drawn interactions"])
+def test_lit_wedges_from_the_tracer_hits_equal_those_of_rays_cast_again(monkeypatch, drawn):
     """The diffraction sampler takes the lit faces and reflected face pairs from the specular
-    tracer's own intersections; casting the lattice rays again gives the same wedges, hence the
+    tracer's own intersections (with drawn interactions, refraction here, from the mirror rays
+    it casts at the first hits); casting the lattice rays again gives the same wedges, hence the
     same moments bit for bit."""
     import sionna.rt as rt
 
     radio = RadioScene.from_config(rt.scene.simple_street_canyon, _cfg())
     tx = np.array([-30.0, 5.0, 20.0])
     x, y = _axes(-60.0, 30, -30.0, 15, 4.0)
-    kw = dict(rx_polarization=None, min_hits_for_power=1, diffraction=True)
+    kw = dict(rx_polarization=None, min_hits_for_power=1, diffraction=True, **drawn)
     a = op.one_pass_moments(radio, tx, np.zeros(3), x, y, [1.5], 300_000, 3, **kw)
     monkeypatch.setattr(sb.Tracer, "collect_lit", lambda self, pairs: None)
     b = op.one_pass_moments(radio, tx, np.zeros(3), x, y, [1.5], 300_000, 3, **kw)

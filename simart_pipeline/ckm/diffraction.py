@@ -57,7 +57,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from simart_pipeline.ckm.shoot_bounce import (_SPAWN_EPSILON, Grid, _unique_keys, fibonacci_directions,
+from simart_pipeline.ckm.shoot_bounce import (Grid, _unique_keys, fibonacci_directions,
                                                on_departure_grid, reflection_terms)
 
 __all__ = ["DiffractionSampler", "WEDGE_KEY_M", "diffracted_bundle_area"]
@@ -140,14 +140,7 @@ class DiffractionSampler:
             if cast_direct:
                 direct.append(_unique_keys(dr, face, hit))
             if cast_reflected:
-                n = dr.select(dr.dot(d, n) > 0, -n, n)  # towards the transmitter's side
-                p = o + dr.select(hit, pi.t, 0.0) * d
-                d_r = d - 2.0 * dr.dot(d, n) * n
-                o_r = p + (1.0 + dr.max(dr.abs(p))) * _SPAWN_EPSILON * n
-                pi2 = self.scene.ray_intersect_preliminary(mi.Ray3f(o_r, d_r), False, hit)
-                hit2 = hit & pi2.is_valid()
-                face2, _ = tr.face_at(dr.reinterpret_array(mi.UInt32, pi2.shape), pi2.prim_index, hit2)
-                reflected.append(_unique_keys(dr, (mi.UInt64(face) << 32) | mi.UInt64(face2), hit2))
+                reflected.append(tr.mirror_pair_keys(o, d, pi.t, face, n, hit))
         if not direct:
             direct = [np.zeros(0, np.uint64)]
         faces = tr.faces

@@ -850,11 +850,13 @@ class Tracer:
 
     def collect_lit(self, pairs: bool) -> None:
         """From now on, collect the lattice rays' first hits (global face indices, ``lit_faces``)
-        and, with ``pairs`` and specular reflection alone (a drawn interaction is no mirror), the
-        (first, second) face pairs of their specular reflections (``lit_pairs``): the lit wedges of
-        :class:`simart_pipeline.ckm.diffraction.DiffractionSampler`, without casting the rays again."""
+        and, with ``pairs``, the (first, second) face pairs of their specular reflections
+        (``lit_pairs``): the lit wedges of :class:`simart_pipeline.ckm.diffraction.DiffractionSampler`,
+        without casting the rays again. With drawn interactions (a drawn one is no mirror) each first
+        hit's mirror ray is cast at depth 0 (:meth:`mirror_pair_keys`); else the tracer's own
+        reflected rays give the second faces."""
         self._lit_face_mask = self.dr.zeros(self.mi.Bool, len(self.faces.normals))
-        self.lit_pairs = [] if pairs and not self.sampled else None
+        self.lit_pairs = [] if pairs else None
 
     @property
     def lit_faces(self) -> list[np.ndarray] | None:
@@ -864,22 +866,39 @@ class Tracer:
             return None
         return [np.flatnonzero(self._lit_face_mask.numpy()).astype(np.uint64)]
 
-    def _record_lit(self, depth: int, ids, prim, hit, prev):
+    def _record_lit(self, depth: int, ids, prim, hit, prev, st=None, t=None):
         """Collect the lit faces (depth 0) and, after a specular reflection, the (first, second)
         face pairs (depth 1) of the lattice rays, as 64-bit keys ``first << 32 | second``;
-        returns what depth 1 needs of depth 0 (its faces and hits)."""
+        returns what depth 1 needs of depth 0 (its faces and hits). ``st``, ``t``: the depth-0
+        rays and their hit distances, whose mirror rays give the pairs where interactions are drawn."""
         dr, mi = self.dr, self.mi
         if self._lit_face_mask is None:
             return None
-        face, _ = self.face_at(ids, prim, hit)
+        face, n = self.face_at(ids, prim, hit)
         if depth == 0:  # a mask on the device: nothing comes back per batch
             dr.scatter(self._lit_face_mask, True, face, hit)
+            if self.sampled and self.lit_pairs is not None:
+                self.lit_pairs.append(self.mirror_pair_keys(st["o"], st["d"], t, face, n, hit))
             return face, hit
-        if self.lit_pairs is not None and prev is not None:  # None: sampled interactions
+        if self.lit_pairs is not None and prev is not None and not self.sampled:
             # _reflect keeps the hit lanes in order: the reflected ray j is lattice ray compress(hit)[j]
             first = dr.gather(mi.UInt32, prev[0], dr.compress(prev[1]))
             self.lit_pairs.append(_unique_keys(dr, (mi.UInt64(first) << 32) | mi.UInt64(face), hit))
         return None
+
+    def mirror_pair_keys(self, o, d, t, face, n, hit) -> np.ndarray:
+        """The distinct (first, second) face pairs, as keys ``first << 32 | second``, of rays from
+        ``o`` along ``d`` that hit global face ``face`` (normal ``n``) at distance ``t`` (``hit``)
+        and go on as its mirror image: each reflected ray cast once."""
+        dr, mi = self.dr, self.mi
+        n = dr.select(dr.dot(d, n) > 0, -n, n)  # towards the side the ray comes from
+        p = o + dr.select(hit, t, 0.0) * d
+        d_r = d - 2.0 * dr.dot(d, n) * n
+        o_r = p + (1.0 + dr.max(dr.abs(p))) * _SPAWN_EPSILON * n
+        pi = self.scene.ray_intersect_preliminary(mi.Ray3f(o_r, d_r), False, hit)
+        hit2 = hit & pi.is_valid()
+        face2, _ = self.face_at(dr.reinterpret_array(mi.UInt32, pi.shape), pi.prim_index, hit2)
+        return _unique_keys(dr, (mi.UInt64(face) << 32) | mi.UInt64(face2), hit2)
 
     def face_at(self, ids, prim, active):
         """Global face index and unit normal of the hit (Mitsuba shape id ``ids``, primitive
@@ -1242,7 +1261,7 @@ class Tracer:
             dr.eval(t_hit, hit, ids, prim)
             line_of_sight = from_transmitter and depth == 0
             if from_transmitter and depth <= 1:
-                hit_prev = self._record_lit(depth, ids, prim, hit, hit_prev if depth else None)
+                hit_prev = self._record_lit(depth, ids, prim, hit, hit_prev if depth else None, st, t_hit)
             if self.los or not line_of_sight:
                 for height, cell_offset in self.heights:
                     # line of sight ends at sharp shadow edges, which a footprint would blur
