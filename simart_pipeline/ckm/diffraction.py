@@ -519,7 +519,9 @@ class DiffractionSampler:
             s_ref = dr.select((t_h > 0) & (t_h < s_ref), t_h, s_ref)
         s_ref = dr.clip(s_ref, 2.0 * MIN_SEGMENT_LENGTH, MAX_REFERENCE_DISTANCE_M)
         shape_id = dr.reinterpret_array(mi.UInt32, first.shape)
-        dr.eval(ok, s_ref, t_first, shape_id, first.prim_index)
+        # one kernel for everything the kept samples read: a gather from a lazy array evaluates
+        # it in a kernel of its own, and these share the wedge geometry and the incident field
+        dr.eval(ok, s_ref, t_first, shape_id, first.prim_index, q, ki, ko, s_prime, ray.o, dep, e_in, measure)
         idx = dr.compress(ok)
         if dr.width(idx) == 0:
             return
