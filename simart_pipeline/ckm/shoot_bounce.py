@@ -1323,6 +1323,7 @@ def _unique_keys(dr, key, active, rounds: int = 2) -> np.ndarray:
     host's copy and hashing of every lane took 13 ms a batch (canyon, docs/ckm-one-pass.md)."""
     import mitsuba as mi
 
+    dr.eval(key, active)  # one kernel: the key's gather would evaluate their shared graph (a ray cast) again
     idx = dr.compress(active)
     if dr.width(idx) == 0:
         return np.zeros(0, np.uint64)
