@@ -719,6 +719,9 @@ class Tracer:
             fp, hx, hy = None, mi.Float(0.0), mi.Float(0.0)
         # the crossing's footprint (a point where hx = hy = 0) overlaps the grid
         cross &= (px + hx >= 0) & (px - hx < g["nx"]) & (py + hy >= 0) & (py - hy < g["ny"])
+        # one kernel for the mask and what the crossings read (a gather from a lazy array
+        # evaluates it, and all it depends on, in a kernel of its own)
+        dr.eval(cross, px, py, *(fp.values() if fp is not None else ()))
         idx = dr.compress(cross)
         if dr.width(idx) == 0:
             return None
