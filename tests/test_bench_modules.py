@@ -847,3 +847,55 @@ def test_radio_map_agreement_on_the_canyon_has_no_power_offset(tmp_path):
     assert (tmp_path / "report.md").read_text().count("| street_canyon |") == 1
     with pytest.raises(SystemExit):
         rma.main(["--out", str(tmp_path), "--runs", "3"])
+
+
+def test_kernel_ledger_charges_each_kernel_to_the_innermost_running_function():
+    """benchmarks.kernel_profile.KernelLedger, known answer with a fake kernel history: kernels
+    launched before, inside an outer function, inside the inner one it calls and after it returns
+    are charged to the stack running at the launch; non-JIT entries are left out."""
+    from benchmarks.kernel_profile import KernelLedger
+
+    pending = []
+
+    class FakeDr:
+        @staticmethod
+        def kernel_history():
+            out = list(pending)
+            pending.clear()
+            return out
+
+    def launch(ops, ms, lanes, kind="JIT"):
+        pending.append({"type": f"KernelType.{kind}", "operation_count": ops, "execution_time": ms, "size": lanes})
+
+    ledger = KernelLedger(FakeDr())
+    inner = ledger.wrap(lambda: launch(7, 2.0, 10), "inner")
+
+    def outer_body():
+        launch(5, 1.0, 100)
+        inner()
+        launch(5, 3.0, 100)
+        launch(9, 4.0, 1, kind="Reduce")
+    outer = ledger.wrap(outer_body, "outer")
+    launch(1, 0.5, 4)
+    outer()
+    ledger.flush()
+    rows = {(r["function"], r["operations"]): r for r in ledger.table()}
+    assert set(rows) == {("(outside)", 1), ("(outside)/outer", 5), ("(outside)/outer/inner", 7)}
+    assert rows[("(outside)/outer", 5)] == {"function": "(outside)/outer", "operations": 5, "launches": 2,
+                                            "ms": 4.0, "lanes": 200}
+    assert rows[("(outside)/outer/inner", 7)]["ms"] == 2.0 and ledger.stack == ["(outside)"]
+
+
+def test_kernel_profile_of_a_small_call_names_the_tracer_and_restores_it():
+    """benchmarks.kernel_profile on the street canyon at 2e4 rays (every mechanism): kernels are
+    charged to the tracer's functions, the rows add up to the totals, and the wrapped methods are
+    the originals again afterwards."""
+    from benchmarks import kernel_profile as kp
+    from simart_pipeline.ckm import shoot_bounce as sb
+
+    before = sb.Tracer._interact
+    r = kp.profile("street_canyon", 20_000)
+    assert sb.Tracer._interact is before
+    assert r["kernels"] == sum(row["launches"] for row in r["rows"]) > 10 and r["kernel_ms"] > 0
+    functions = {row["function"].split("/")[-1] for row in r["rows"]}
+    assert {"Tracer._interact", "Tracer._deposits", "DiffractionSampler._trace_batch"} <= functions, functions
