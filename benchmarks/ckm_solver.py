@@ -78,6 +78,8 @@ tr38901 pattern:
   another seed), and the time of the fewest one-pass rays that reach RadioMapSolver's p50, p95 and
   coverage at the main ray count, over RadioMapSolver's time there; the two models like for like
   at 1e8 rays, where the Monte-Carlo floor of the path gain comparison is sqrt(10) lower.
+- where both converge: :mod:`benchmarks.radio_map_agreement` (RadioMapSolver at 1e9 rays as the
+  mean of ten seeded runs; about an hour on 2 cores, so not part of this benchmark).
 
 Ray count against error (the sets of :data:`SWEEP_SETS`; above the main ray count only on the scenes
 it names): the one-pass (V, as against PathSolver) and RadioMapSolver at 1e5 .. 1e8 rays
