@@ -41,6 +41,7 @@ from benchmarks import ckm_solver as cs
 from benchmarks.bench import machine
 from benchmarks.ckm_variants import SceneRuns
 from simart_pipeline import engine
+from simart_pipeline.link.budget import power_db
 
 SCENE_ORDER = ("urban", "street_canyon", "munich")  # the quickest first: a long run leaves results early
 SEED_OFFSET = 100  # RadioMapSolver's runs: seeds after the scene's own (ckm_solver's main map uses it)
@@ -51,9 +52,7 @@ def mean_of_runs_db(runs_db) -> np.ndarray:
     a run's rays missed the cell): their mean in linear power, a miss counting as zero power (what
     that run's estimator says there); NaN where every run missed."""
     runs = np.asarray(runs_db, dtype=np.float64)
-    linear = np.where(np.isfinite(runs), 10.0 ** (runs / 10.0), 0.0).mean(axis=0)
-    with np.errstate(divide="ignore"):
-        return np.where(linear > 0, 10.0 * np.log10(linear), np.nan)
+    return power_db(np.where(np.isfinite(runs), 10.0 ** (runs / 10.0), 0.0).mean(axis=0))
 
 
 def halves_db(runs_db) -> tuple[np.ndarray, np.ndarray]:

@@ -1168,9 +1168,9 @@ class Tracer:
         the drawn direction, :meth:`_diffuse_direction`). A far cell that a scattered ray
         crosses by chance once in millions gets its share from every hit it sees; near the hit
         the scattered rays carry it. Delay and directions are the cell centre's, as every other
-        deposit's."""
+        deposit's. Its inputs come evaluated (:meth:`_interact` evaluates them with the next ray
+        state in one kernel)."""
         dr, mi, nee, g = self.dr, self.mi, self.nee, self.g
-        dr.eval(active, p, n, d_r, w_diff, p_diff, kx, pat, length)  # evaluated already by _interact
         lanes = dr.compress(active)
         m = dr.width(lanes)
         if m == 0:
