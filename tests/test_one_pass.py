@@ -402,20 +402,23 @@ def test_beams_evaluated_per_set_or_once_for_many_sets_agree(tmp_path, monkeypat
             np.testing.assert_array_equal(getattr(pooled, f.name), getattr(per_set, f.name), err_msg=f.name)
 
 
-def test_direction_groups_are_the_same_with_one_key_or_two():
+@pytest.mark.parametrize("bits", [16, 2])  # 2: four slots, grown many times, nearly every key collides
+def test_direction_groups_sum_each_cell_and_key_once(bits):
     rng = np.random.default_rng(3)
-    cell = rng.integers(0, 50, 5000)
-    dkey = rng.integers(0, 4, 5000) << 20 | rng.integers(0, 3, 5000)
-    w = rng.random(5000)
-    small = op._group_sums(cell, dkey, w, 50)  # one packed int64 key
-    large = op._group_sums(cell, dkey, w, 1 << 40)  # grids too large to pack: lexsort
-    for a, b in zip(small, large):
-        np.testing.assert_allclose(a, b, rtol=1e-12)
+    groups = op._GroupSums(bits)
     expect = {}
-    for c, k, v in zip(cell, dkey, w):
-        expect[(c, k)] = expect.get((c, k), 0.0) + v
-    assert dict(zip(zip(small[0], small[1]), small[2])) == pytest.approx(expect)
-    assert (np.diff(small[0]) >= 0).all()
+    for size, cells in ((5000, 50), (3000, 1 << 40)):  # cell numbers past any packed key too
+        cell = rng.integers(0, cells, size) if cells < 1e6 else rng.integers(0, 4, size) << 38
+        dkey = rng.integers(0, 4, size) << 20 | rng.integers(0, 3, size)
+        w = rng.random(size).astype(np.float32)
+        groups.add(cell, dkey, w)
+        for c, k, v in zip(cell, dkey, w):
+            expect[(c, k)] = expect.get((c, k), 0.0) + float(v)
+    assert len(groups) == len(expect)
+    g_cell, g_dkey, sums = groups.drain()
+    assert dict(zip(zip(g_cell, g_dkey), sums)) == pytest.approx(expect, rel=1e-12)
+    assert sorted(zip(g_cell, g_dkey)) == sorted(expect)  # each group once
+    assert len(groups) == 0 and len(groups.drain()[0]) == 0  # drained
 
 
 @pytest.mark.parametrize("table_bits", [20, 3])  # 3: 8 slots, nearly every key collides
@@ -476,10 +479,8 @@ def test_a_dft_grid_of_beams_is_found_separable_and_its_factors_give_every_beam(
     u = rng.normal(size=(2000, 3))
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     k = 2 * np.pi / lam
-    power = [np.abs(np.exp(1j * k * u[:, d, None] * x[None, :]) @ f) ** 2
-             for d, x, f in zip(sep["axes"], sep["coords"], (sep["a"], sep["c"]))]
-    got = power[0][:, sep["a_of_beam"]] * power[1][:, sep["c_of_beam"]] * sep["scale"]
     want = np.abs(np.exp(1j * k * u @ pos.T) @ cb.T) ** 2
+    got = op.beam_factors(cb, pos, u, k, sep)  # from the axes' factors
     np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9 * want.max())
     np.testing.assert_allclose(op.beam_factors(cb, pos, u, k), want, rtol=1e-5, atol=1e-5 * want.max())
     rand = rng.normal(size=cb.shape) + 1j * rng.normal(size=cb.shape)

@@ -92,7 +92,6 @@ from dataclasses import dataclass, fields
 import numba
 import numpy as np
 import pandas as pd
-from scipy import sparse
 
 from simart_pipeline.ckm.moments import CellMoments, layers_from_moments, too_few_for_power
 from simart_pipeline.ckm.diffraction import STRETCHES_PER_PAIR
@@ -127,7 +126,11 @@ LATTICE_NOISE_SHARE = 0.5
 DEFAULT_DIFFUSE_CONNECTIONS = 0.5
 BEAM_CHUNK = 4096  # directions per step of beam_factors (3x faster than all at once on 2e5)
 _INF_BITS = 0x7F800000  # float32 +inf as uint32
-MAX_PENDING_GROUPS = 1 << 22  # (cell, direction) groups whose beams wait for one evaluation: 96 MB
+# (cell, direction) groups whose beams wait for one evaluation: their table (_GroupSums, at most
+# half full, 24 bytes a slot) with one more deposit set's groups fits a 32 MB cache. Few groups
+# recur between evaluations (street canyon, every mechanism, 1e7 rays: 4.7 M groups in 15, 4.4 M
+# in 2), and the table's random accesses cost 1.4 s at this size against 3.0 s at 4 M groups
+MAX_PENDING_GROUPS = 1 << 18
 
 
 @dataclass
@@ -176,6 +179,8 @@ class _Accumulator:
         self.m.tau0_s = np.linalg.norm(self.centres - self.tx, axis=-1) / SPEED_OF_LIGHT_MPS
         self.codebook = codebook
         self.ant = ant_positions_m
+        # a Kronecker codebook's beams from their axes' factors (separable_codebook)
+        self.separable = None if codebook is None else separable_codebook(codebook, ant_positions_m)
         self.rot = tx_rotation
         self.k = 2 * np.pi / wavelength_m
         # per tag (shoot_bounce.TAGS: a diffracted ray's stretch of edge, a lattice ray's bin): the
@@ -184,8 +189,8 @@ class _Accumulator:
         # sum p and sum p^2 per cell of the deposits with a lattice bin (lattice rays never diffused)
         self.binned_power: np.ndarray | None = None
         self.binned_power_sq: np.ndarray | None = None
-        # (cells, direction keys, power sums) of the deposit sets whose beams are still to add
-        self.beam_groups: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        # power sums per (cell, direction key) of the deposits whose beams are still to add
+        self.beam_groups = _GroupSums()
 
     def __call__(self, dep: dict[str, np.ndarray], line_of_sight: bool) -> None:
         m = self.m
@@ -203,12 +208,9 @@ class _Accumulator:
             # to float32 noise after the image-source correction) share a beam factor: summed per
             # group here, the factors evaluated once per direction for many sets in _add_beams
             # (a path's direction recurs in every batch: per set, a quarter of a GPU run's time).
-            # float64 weights: the large-grid grouping sums with np.add.reduceat, in their type
             dkey = dep["dkey"]  # Dr.Jit's UInt64: the same bits as int64 (keys use 3 Q_BITS < 63 bits)
-            dkey = dkey.view(np.int64) if dkey.dtype == np.uint64 else dkey.astype(np.int64)
-            groups = _group_sums(cell, dkey, p.astype(np.float64), len(self.m.power))
-            self.beam_groups.append(groups)
-            if sum(len(g[0]) for g in self.beam_groups) > MAX_PENDING_GROUPS:
+            self.beam_groups.add(cell, dkey.view(np.int64) if dkey.dtype == np.uint64 else dkey.astype(np.int64), p)
+            if len(self.beam_groups) > MAX_PENDING_GROUPS:
                 self._add_beams()
 
     def _tag(self, tag: str, cell: np.ndarray, value: np.ndarray, power: np.ndarray | None) -> None:
@@ -233,27 +235,19 @@ class _Accumulator:
         """Adds the pending groups' beam powers: the factor of each group's direction, quantised
         to DIRECTION_QUANTUM in the device frame (the key, made on the Dr.Jit side: the same for a
         ray whatever its batch), times the group's power."""
-        if not self.beam_groups:
+        if not len(self.beam_groups):
             return
-        if len(self.beam_groups) == 1:
-            g_cell, g_dkey, pg = self.beam_groups[0]
-        else:  # a (cell, direction) group may recur in several sets: one group again
-            g_cell, g_dkey, pg = _group_sums(*(np.concatenate(a) for a in zip(*self.beam_groups)), len(self.m.power))
-        self.beam_groups = []
+        g_cell, g_dkey, pg = self.beam_groups.drain()
         # many cells share a direction (diffracted and diffuse paths: on DEPARTURE_QUANTUM's
         # grid): evaluate each distinct direction once
         inverse, keys = pd.factorize(g_dkey, sort=False)
         mask = (1 << Q_BITS) - 1
         u = (np.stack([(keys >> (k * Q_BITS)) & mask for k in (2, 1, 0)], -1) - Q_OFFSET) * DIRECTION_QUANTUM
         u /= np.linalg.norm(u, axis=1, keepdims=True)
-        gains = beam_factors(self.codebook, self.ant, u, self.k)
-        # beam power of a cell = sum over its groups of group power x the group direction's factors:
-        # a sparse [cells hit x directions] matrix times the dense factors (groups come sorted by
-        # cell: the CSR row pointers are where each cell's groups start); 5x faster than gathering
-        # a factor row per group and reducing (that gather writes groups x beams floats)
-        first = np.flatnonzero(np.r_[True, g_cell[1:] != g_cell[:-1]])
-        weights = sparse.csr_matrix((pg, inverse, np.r_[first, len(g_cell)]), shape=(len(first), len(keys)))
-        self.m.beam_power[g_cell[first]] += weights @ gains
+        gains = beam_factors(self.codebook, self.ant, u, self.k, self.separable)
+        # beam power of a cell = sum over its groups of group power x the group direction's factors
+        # (a compiled loop: no sort of the groups by cell, no sparse matrix, no gathered copy)
+        _add_group_beams(self.m.beam_power, g_cell, inverse.astype(np.int64), pg, gains)
 
     def tags_into(self, cells: np.ndarray, tag: str = "stretch") -> np.ndarray:
         """The tags (``stretch``: stretches of edge, DiffractionSampler's; ``lattice_bin``: bins of
@@ -289,7 +283,8 @@ class _Accumulator:
             lit = np.flatnonzero(m.los_power > 0)
             u = self.centres[lit] - self.tx
             u = (u / np.linalg.norm(u, axis=1, keepdims=True)) @ self.rot  # device frame
-            m.beam_power[lit] += m.los_power[lit, None] * beam_factors(self.codebook, self.ant, u, self.k)
+            m.beam_power[lit] += m.los_power[lit, None] * beam_factors(self.codebook, self.ant, u, self.k,
+                                                                       self.separable)
         return CellMoments(
             power=m.power.reshape(s), los_power=m.los_power.reshape(s), count=m.count.reshape(s),
             min_delay_s=m.min_delay_s.reshape(s), tau0_s=m.tau0_s.reshape(s),
@@ -329,7 +324,6 @@ class _DeviceAccumulator(_Accumulator):
         self.num_beams = 0 if codebook is None else codebook.shape[0]
         if self.num_beams:
             self.d_beams = dr.zeros(mi.Float64, n * self.num_beams)
-            self.separable = separable_codebook(codebook, ant_positions_m)
             if self.separable is None:  # the looped form's phases and weights
                 self.kpos = np.asarray(ant_positions_m, np.float64) * self.k  # rad/m x m: phase per unit direction
                 w = np.asarray(codebook, np.complex64).ravel()  # [beam, antenna], row-major
@@ -515,28 +509,107 @@ def _accumulate_deposits(cell, power, dist, cos0, cos1, cos2, cos3, sin0, sin1, 
         m_p_sin[c, 3] += p * sin3[i]
 
 
-def _group_sums(cell: np.ndarray, dkey: np.ndarray, weight: np.ndarray, num_cells: int):
-    """Sum ``weight`` over distinct (cell, direction key) pairs: (cells, keys, sums), sorted by
-    cell, then key. A cell's deposits share a few directions (one per path: 5.8e6 deposits form
-    1.4e4 groups on the street canyon), so hash grouping (``pandas.factorize``, linear time, sums
-    in deposit order) then sorting the few groups is 5x faster than sorting every deposit."""
-    if num_cells <= 1 << (63 - 3 * Q_BITS):  # one int64 key
-        codes, uniq = pd.factorize((cell << (3 * Q_BITS)) | dkey, sort=False)
-        sums = np.bincount(codes, weight, len(uniq))
-        order = np.argsort(uniq)
-        k = uniq[order]
-        return k >> (3 * Q_BITS), k & ((1 << (3 * Q_BITS)) - 1), sums[order]
-    order = np.lexsort((dkey, cell))
-    cs, ds = cell[order], dkey[order]
-    new = np.r_[True, (cs[1:] != cs[:-1]) | (ds[1:] != ds[:-1])]
-    return cs[new], ds[new], np.add.reduceat(weight[order], np.flatnonzero(new))
+class _GroupSums:
+    """Sums of deposit powers per distinct (cell, direction key), in deposit order: an
+    open-addressing hash table (linear probing, at most half full) that a compiled loop fills
+    without the GIL, beside the tracer. Diffracted and diffuse paths leave on
+    DEPARTURE_QUANTUM's grid, so a cell gets many directions (the street canyon, every mechanism,
+    1e7 rays: 29 M deposits, 4.7 M groups); drained every MAX_PENDING_GROUPS the table stays in
+    cache. It replaces a ``pandas.factorize`` per deposit set and the sets' groups merged again,
+    3.3 s of that run's 5.4 s of host sums (docs/ckm-one-pass.md, "Session 32")."""
+
+    def __init__(self, bits: int = 16):
+        self._alloc(bits)
+
+    def _alloc(self, bits: int) -> None:
+        self.cell = np.full(1 << bits, -1, np.int64)  # -1: an empty slot
+        self.dkey = np.zeros(1 << bits, np.int64)
+        self.sum = np.zeros(1 << bits, np.float64)
+        self.used = np.zeros(1, np.int64)
+
+    def __len__(self) -> int:
+        return int(self.used[0])
+
+    def add(self, cell: np.ndarray, dkey: np.ndarray, power: np.ndarray) -> None:
+        i, n = 0, len(cell)
+        while True:
+            i = _add_to_groups(self.cell, self.dkey, self.sum, self.used, cell, dkey, power, i)
+            if i == n:
+                return
+            old = self.cell, self.dkey, self.sum  # half full: twice the slots, the groups again
+            self._alloc(int(len(old[0])).bit_length())
+            keep = old[0] >= 0
+            _add_to_groups(self.cell, self.dkey, self.sum, self.used, old[0][keep], old[1][keep], old[2][keep], 0)
+
+    def drain(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(cells, keys, sums) in the table's order (deterministic: the keys decide it); the table
+        emptied."""
+        out = np.empty(len(self), np.int64), np.empty(len(self), np.int64), np.empty(len(self), np.float64)
+        _drain_groups(self.cell, self.dkey, self.sum, *out)
+        self.used[0] = 0
+        return out
+
+
+@_compiled
+def _add_group_beams(beam_power, cell, direction, power, factors):
+    """``beam_power[cell[g]] += power[g] * factors[direction[g]]`` for every group ``g``."""
+    for g in range(len(cell)):
+        row, f, p = beam_power[cell[g]], factors[direction[g]], power[g]
+        for b in range(len(row)):
+            row[b] += p * f[b]
+
+
+@_compiled
+def _drain_groups(t_cell, t_dkey, t_sum, cell, dkey, power):
+    """The occupied slots' groups into ``cell``, ``dkey``, ``power``, in slot order; each slot emptied."""
+    j = 0
+    for slot in range(len(t_cell)):
+        if t_cell[slot] >= 0:
+            cell[j], dkey[j], power[j] = t_cell[slot], t_dkey[slot], t_sum[slot]
+            t_cell[slot], t_sum[slot] = -1, 0.0
+            j += 1
+
+
+@_compiled
+def _add_to_groups(t_cell, t_dkey, t_sum, used, cell, dkey, power, start):
+    """Adds deposits ``start..`` into the table; returns where it stopped: ``len(cell)``, or the
+    first deposit that would have filled the table past half (the caller grows it)."""
+    mask = np.uint64(len(t_cell) - 1)
+    for i in range(start, len(cell)):
+        c, k = np.int64(cell[i]), np.int64(dkey[i])
+        # splitmix64's finaliser: every key bit reaches the low bits the mask keeps
+        h = np.uint64(c) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(k)
+        h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        slot = np.int64((h ^ (h >> np.uint64(31))) & mask)
+        while t_cell[slot] >= 0 and (t_cell[slot] != c or t_dkey[slot] != k):
+            slot = np.int64((np.uint64(slot) + np.uint64(1)) & mask)
+        if t_cell[slot] < 0:
+            if 2 * (used[0] + 1) > len(t_cell):
+                return i
+            t_cell[slot], t_dkey[slot] = c, k
+            used[0] += 1
+        t_sum[slot] += np.float64(power[i])
+    return len(cell)
 
 
 def beam_factors(codebook: np.ndarray, ant_positions_m: np.ndarray, directions: np.ndarray,
-                 wavenumber_rad_per_m: float) -> np.ndarray:
+                 wavenumber_rad_per_m: float, separable: dict | None = None) -> np.ndarray:
     """``|w_b^T v(u)|^2`` ``[num_dir, num_beams]`` for unit vectors ``u`` ``[num_dir, 3]`` in the
-    array's own frame; ``v_n = exp(+j k p_n . u)`` (the project's precoder convention). Complex64
-    arithmetic (relative error about 1e-6, three times faster than complex128), float64 result."""
+    array's own frame; ``v_n = exp(+j k p_n . u)`` (the project's precoder convention). With
+    ``separable`` (:func:`separable_codebook` of this codebook and array) from its axes' factors:
+    an 8 x 8 DFT grid costs 16 phases and 2 x 8 x 8 products per direction instead of 64 phases
+    and 64 x 64, in a compiled loop without the GIL (it runs beside the tracer: numpy's many
+    small calls there waited for the GIL, docs/ckm-one-pass.md, "Session 32"), in complex128.
+    Otherwise complex64 arithmetic (relative error about 1e-6, three times faster than
+    complex128); a float64 result either way."""
+    if separable is not None:
+        sep = separable
+        out = np.empty((len(directions), len(sep["scale"])), np.float64)
+        _separable_beam_factors(np.ascontiguousarray(directions, np.float64), *sep["axes"], *sep["coords"],
+                                sep["a"], sep["c"], sep["a_of_beam"], sep["c_of_beam"],
+                                sep["scale"], float(wavenumber_rad_per_m), out)
+        return out
     pos = np.asarray(ant_positions_m, np.float64).T * wavenumber_rad_per_m
     w = np.asarray(codebook, np.complex64).T
     out = np.empty((len(directions), w.shape[1]), np.float64)
@@ -547,6 +620,27 @@ def beam_factors(codebook: np.ndarray, ant_positions_m: np.ndarray, directions: 
         y = v @ w
         out[lo:lo + len(y)] = y.real.astype(np.float64) ** 2 + y.imag.astype(np.float64) ** 2
     return out
+
+
+@_compiled
+def _separable_beam_factors(u, axis0, axis1, x0, x1, a, c, a_of_beam, c_of_beam, scale, wavenumber, out):
+    """:func:`beam_factors` of a Kronecker codebook: per direction ``u[i]`` the powers of the
+    distinct axis factors, ``|a_k^T v_0(u)|^2`` and ``|c_k^T v_1(u)|^2``, and each beam's their
+    product times ``scale``, into ``out[i]``."""
+    v0, v1 = np.empty(len(x0), np.complex128), np.empty(len(x1), np.complex128)
+    p0, p1 = np.empty(a.shape[1]), np.empty(c.shape[1])
+    for i in range(len(u)):
+        for v, x, f, p, d in ((v0, x0, a, p0, axis0), (v1, x1, c, p1, axis1)):
+            for e in range(len(x)):
+                phase = wavenumber * u[i, d] * x[e]
+                v[e] = complex(np.cos(phase), np.sin(phase))
+            for k in range(f.shape[1]):
+                y = 0j
+                for e in range(len(x)):
+                    y += f[e, k] * v[e]
+                p[k] = y.real * y.real + y.imag * y.imag
+        for b in range(len(scale)):
+            out[i, b] = p0[a_of_beam[b]] * p1[c_of_beam[b]] * scale[b]
 
 
 SEPARABLE_RANK_TOLERANCE = 1e-6  # a beam is a Kronecker product where its second singular value is below this share
