@@ -1271,6 +1271,36 @@ def test_diffraction_is_deterministic_and_batch_independent(tmp_path, sampled, r
         assert a.second_pass["pairs"] >= 1 and a.second_pass == c.second_pass
 
 
+@pytest.mark.parametrize("sampled", [False, True], ids=["specular", "with diffuse reflection and refraction"])
+def test_last_segments_that_cross_no_grid_plane_are_dropped_without_changing_a_bit(tmp_path, monkeypatch, sampled):
+    """The tracer drops a last-segment ray that crosses no grid plane ahead and casts the others
+    only as far as their last crossing (Tracer._reach): every sum equals that of the untrimmed
+    trace, with two grid planes, diffraction and (sampled) diffuse reflection and refraction."""
+    from simart_pipeline.ckm.shoot_bounce import Tracer
+
+    radio = RadioScene.from_config(_box_and_ground_scene(tmp_path, True), _cfg())
+    x, y = _axes(0.0, 20, 0.0, 20, 2.0)
+    kw = dict(diffraction=True, codebook=np.ones((1, 1), complex), diffuse_reflection=sampled, refraction=sampled,
+              diffuse_connections=1.0 if sampled else 0.0)
+    run = lambda: op.one_pass_moments(radio, np.array([0.0, 0.0, 10.0]), np.zeros(3), x, y, [1.5, 6.0],  # noqa: E731
+                                      100_000, 3, **kw)
+    reach, dropped = Tracer._reach, []
+
+    def spy(self, o, d):
+        r = reach(self, o, d)
+        dropped.append(int(self.dr.count(r == 0)[0]))
+        return r
+
+    monkeypatch.setattr(Tracer, "_reach", spy)
+    trimmed = run()
+    assert sum(dropped) > 1000  # rays were dropped
+    monkeypatch.setattr(Tracer, "_reach", lambda self, o, d: self.mi.Float(1e30) + 0.0 * o.z)
+    full = run()
+    assert (full.count > 0).sum() > 100
+    for f in fields(CellMoments):
+        np.testing.assert_array_equal(getattr(trimmed, f.name), getattr(full, f.name), err_msg=f.name)
+
+
 # --- refraction (split) and diffuse reflection (drawn) --------------------------------------------
 
 

@@ -911,7 +911,19 @@ class Tracer:
         face = dr.gather(mi.UInt32, self.face_offset, ids, active) + dr.select(active, prim, 0)
         return face, dr.gather(mi.Vector3f, self.face_normals, face, active)
 
-    def _reflect(self, st, t, ids, prim, keep):
+    def _reach(self, o, d):
+        """How far along each ray (origin ``o``, direction ``d``) its last crossing of a grid plane
+        lies; 0 where it crosses none ahead (the same ``t_h`` as :meth:`_deposits`)."""
+        dr = self.dr
+        reach = self.mi.Float(0.0)
+        for height, _ in self.heights:
+            t_h = (height - o.z) / d.z
+            reach = dr.select((d.z != 0) & (t_h > reach), t_h, reach)
+        return reach
+
+    def _reflect(self, st, t, ids, prim, keep, last: bool = False):
+        """The specular reflection of each hit ``keep``; ``last``: the reflected rays only deposit
+        (the next segment is the last), those that cross no grid plane are dropped."""
         dr, mi = self.dr, self.mi
         d = st["d"]
         _, n = self.face_at(ids, prim, keep)
@@ -929,6 +941,8 @@ class Tracer:
             length=st["length"] + t,
             **{k: st[k] - 2.0 * dr.dot(n, st[k]) * n for k in ("m0", "m1", "m2")},
             **{k: st[k] for k in _CARRIED if k in st})
+        if last:
+            keep = keep & (self._reach(new["o"], new["d"]) > 0)
         return _compact(dr, new, keep)
 
     def _uniform(self, idx, depth: int, purpose: int):
@@ -1027,12 +1041,13 @@ class Tracer:
             out.append(scale * ((ca * et - cb * ep) * th_o + (cb * et + ca * ep) * ph_o))
         return out
 
-    def _interact(self, st, t, ids, prim, keep, depth: int, sink=None):
+    def _interact(self, st, t, ids, prim, keep, depth: int, sink=None, last: bool = False):
         """One interaction per ray, drawn among the enabled ones in proportion to their energies
         and weighted by ``1 / sqrt(probability)`` (module docstring); with refraction and a
         reflection both on, each hit is split instead: its transmitted ray goes on with its own
         field ``T E``, beside the reflected one, drawn between specular and diffuse. Rays with no
-        interaction left (no energy, a diffuse direction below the face) stop."""
+        interaction left (no energy, a diffuse direction below the face) stop; with ``last`` (the
+        next segment only deposits) so do those that cross no grid plane ahead."""
         dr, mi = self.dr, self.mi
         split = self.refraction and (self.specular or self.diffuse)
         if split:
@@ -1142,6 +1157,8 @@ class Tracer:
             anchor = dr.select(diff, length, anchor)
         if self.undiffused_only:
             alive &= ~diff
+        if last:
+            alive &= self._reach(new_o, new_d) > 0
         new = dict(o=new_o, d=new_d, e_re=new_re, e_im=new_im, length=length, m0=m[0], m1=m[1], m2=m[2],
                    idx=st["idx"], anchor=anchor, **extra, **{k: st[k] for k in _CARRIED if k in st})
         if connections is not None:
@@ -1249,14 +1266,21 @@ class Tracer:
         dr, mi = self.dr, self.mi
         dr.eval(*st.values())
         hit_prev = None
+        # the last segment only deposits (no lit faces to record from it): a ray that crosses no
+        # grid plane ahead is dropped, and the others are cast no farther than their last crossing
+        # (a hit beyond it changes no deposit); the maps are the same bit for bit
+        trim_last = not (from_transmitter and max_depth <= 1)
         for depth in range(max_depth + 1):
             if depth == 0 and first_hit is not None:
                 t_hit, ids, prim = first_hit
                 hit = t_hit < dr.inf
             else:
+                ray = mi.Ray3f(st["o"], st["d"])
+                if depth == max_depth and trim_last:
+                    ray.maxt = self._reach(ray.o, ray.d) * (1.0 + 2.0**-10)
                 # the preliminary intersection (distance, shape, triangle) is a third of the cost
                 # of a full surface interaction; face normals come from our own table
-                pi = self.scene.ray_intersect_preliminary(mi.Ray3f(st["o"], st["d"]), False)
+                pi = self.scene.ray_intersect_preliminary(ray, False)
                 hit = pi.is_valid()
                 t_hit = dr.select(hit, pi.t, dr.inf)
                 ids = dr.reinterpret_array(mi.UInt32, pi.shape)
@@ -1274,10 +1298,11 @@ class Tracer:
                         sink(dep, line_of_sight)
             if depth == max_depth:
                 break
+            last = trim_last and depth + 1 == max_depth  # the rays it makes only deposit
             if self.sampled:
-                st = self._interact(st, t_hit, ids, prim, hit, depth, sink)
+                st = self._interact(st, t_hit, ids, prim, hit, depth, sink, last)
             else:
-                st = self._reflect(st, t_hit, ids, prim, hit)
+                st = self._reflect(st, t_hit, ids, prim, hit, last)
             if st is None:
                 break
 
