@@ -1273,9 +1273,11 @@ def test_diffraction_is_deterministic_and_batch_independent(tmp_path, sampled, r
 
 @pytest.mark.parametrize("sampled", [False, True], ids=["specular", "with diffuse reflection and refraction"])
 def test_last_segments_that_cross_no_grid_plane_are_dropped_without_changing_a_bit(tmp_path, monkeypatch, sampled):
-    """The tracer drops a last-segment ray that crosses no grid plane ahead and casts the others
-    only as far as their last crossing (Tracer._reach): every sum equals that of the untrimmed
-    trace, with two grid planes, diffraction and (sampled) diffuse reflection and refraction."""
+    """The tracer drops a last-segment ray that crosses no grid plane ahead, or crosses only so
+    far outside the grid that no footprint reaches it, and casts the others only as far as their
+    last crossing that can deposit (Tracer._reach): every sum equals that of the untrimmed trace,
+    with two grid planes on a grid much smaller than the ground, diffraction and (sampled) diffuse
+    reflection and refraction. It fails with too small a margin round the grid."""
     from simart_pipeline.ckm.shoot_bounce import Tracer
 
     radio = RadioScene.from_config(_box_and_ground_scene(tmp_path, True), _cfg())

@@ -913,12 +913,19 @@ class Tracer:
 
     def _reach(self, o, d):
         """How far along each ray (origin ``o``, direction ``d``) its last crossing of a grid plane
-        lies; 0 where it crosses none ahead (the same ``t_h`` as :meth:`_deposits`)."""
-        dr = self.dr
+        that can deposit lies (the same ``t_h`` as :meth:`_deposits`; a crossing whose footprint
+        cannot reach the grid does not count); 0 where no such crossing lies ahead."""
+        dr, g = self.dr, self.g
+        # a footprint's half-extent is at most max_footprint_cells x sqrt(2) cells (_footprint):
+        # crossings farther than this margin outside the grid deposit nothing in _deposits
+        margin = 2.0 * max(float(self.max_footprint_cells), 1.0) + 1.0
         reach = self.mi.Float(0.0)
         for height, _ in self.heights:
             t_h = (height - o.z) / d.z
-            reach = dr.select((d.z != 0) & (t_h > reach), t_h, reach)
+            px = (o.x + t_h * d.x - g["x_lo"]) / g["dx"]
+            py = (o.y + t_h * d.y - g["y_lo"]) / g["dy"]
+            near = (px > -margin) & (px < g["nx"] + margin) & (py > -margin) & (py < g["ny"] + margin)
+            reach = dr.select((d.z != 0) & near & (t_h > reach), t_h, reach)
         return reach
 
     def _reflect(self, st, t, ids, prim, keep, last: bool = False):
@@ -1267,8 +1274,9 @@ class Tracer:
         dr.eval(*st.values())
         hit_prev = None
         # the last segment only deposits (no lit faces to record from it): a ray that crosses no
-        # grid plane ahead is dropped, and the others are cast no farther than their last crossing
-        # (a hit beyond it changes no deposit); the maps are the same bit for bit
+        # grid plane ahead, or only outside the grid, is dropped, and the others are cast no
+        # farther than their last crossing that can deposit (a hit beyond it changes no deposit);
+        # the maps are the same bit for bit
         trim_last = not (from_transmitter and max_depth <= 1)
         for depth in range(max_depth + 1):
             if depth == 0 and first_hit is not None:
