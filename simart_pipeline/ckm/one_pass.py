@@ -599,8 +599,8 @@ def beam_factors(codebook: np.ndarray, ant_positions_m: np.ndarray, directions: 
     array's own frame; ``v_n = exp(+j k p_n . u)`` (the project's precoder convention). With
     ``separable`` (:func:`separable_codebook` of this codebook and array) from its axes' factors:
     an 8 x 8 DFT grid costs 16 phases and 2 x 8 x 8 products per direction instead of 64 phases
-    and 64 x 64, in a compiled loop without the GIL (it runs beside the tracer: numpy's many
-    small calls there waited for the GIL, docs/ckm-one-pass.md, "Session 32"), in complex128.
+    and 64 x 64, in a compiled loop without the GIL, in complex128 (it runs beside the tracer,
+    where numpy's form ran 3-10x slower than alone: docs/ckm-one-pass.md, "Session 32").
     Otherwise complex64 arithmetic (relative error about 1e-6, three times faster than
     complex128); a float64 result either way."""
     if separable is not None:

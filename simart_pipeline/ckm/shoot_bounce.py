@@ -930,7 +930,8 @@ class Tracer:
 
     def _reflect(self, st, t, ids, prim, keep, last: bool = False):
         """The specular reflection of each hit ``keep``; ``last``: the reflected rays only deposit
-        (the next segment is the last), those that cross no grid plane are dropped."""
+        (the next segment is the last), those with no crossing that can deposit are dropped
+        (:meth:`_reach`)."""
         dr, mi = self.dr, self.mi
         d = st["d"]
         _, n = self.face_at(ids, prim, keep)
@@ -1054,7 +1055,8 @@ class Tracer:
         reflection both on, each hit is split instead: its transmitted ray goes on with its own
         field ``T E``, beside the reflected one, drawn between specular and diffuse. Rays with no
         interaction left (no energy, a diffuse direction below the face) stop; with ``last`` (the
-        next segment only deposits) so do those that cross no grid plane ahead."""
+        next segment only deposits) so do those with no crossing ahead that can deposit
+        (:meth:`_reach`)."""
         dr, mi = self.dr, self.mi
         split = self.refraction and (self.specular or self.diffuse)
         if split:
