@@ -1538,6 +1538,28 @@ def test_diffuse_connections_estimate_the_same_scattered_gain_with_less_noise(tm
         np.testing.assert_array_equal(m.min_delay_s > 0, rays.min_delay_s > 0)
 
 
+def test_diffuse_connections_are_made_from_every_hit_of_a_split_whatever_its_roulette(tmp_path, monkeypatch):
+    """With refraction on, a hit is split and the weak side of the split goes on by Russian
+    roulette; the hit's connections to cells (next-event estimation) do not depend on that draw:
+    their balance-heuristic weights count every hit. Here every reflected ray plays the roulette
+    (``SPLIT_MIN_SHARE`` = 2: it goes on with probability at most 1/2, weighted by its inverse),
+    and the Lambertian ground's map at 1e6 rays with one connection a hit is still Sionna's model:
+    grid total within 1 % (measured 0.05 % high), median cell within 2 % (0.8 %). Connections
+    made only from the hits whose reflected ray survived the roulette (an aliased mask did that
+    until session 33) put the total 19 % low and the median cell 23 %."""
+    radio = _lambertian_ground_scene(tmp_path)
+    H, h, n = 10.0, 1.5, 1_000_000
+    tx = np.array([0.0, 0.0, H])
+    x, y = _axes(0.0, 12, -10.0, 10, 2.0)
+    ref = _lambertian_ground_gain(x, y, H, h)
+    monkeypatch.setattr(sb, "SPLIT_MIN_SHARE", 2.0)
+    m = op.one_pass_moments(radio, tx, np.zeros(3), x, y, np.array([h]), n, 1, los=False, specular_reflection=True,
+                            diffuse_reflection=True, refraction=True, diffuse_connections=1.0)
+    r = m.power[0] / ref - 1
+    assert abs(m.power[0].sum() / ref.sum() - 1) < 0.01
+    assert abs(np.median(r)) < 0.02
+
+
 def _ground_and_wall(tmp_path, patterns: bool):
     from sionna.rt import BackscatteringPattern, DirectivePattern
 

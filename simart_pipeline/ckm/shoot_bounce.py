@@ -1060,21 +1060,16 @@ class Tracer:
         dr, mi = self.dr, self.mi
         split = self.refraction and (self.specular or self.diffuse)
         if split:
-            # lanes [0, n): the reflected rays of the n hits; [n, 2n): their transmitted ones (the
-            # misses are left out here, not carried twice to the compaction at the end)
+            # the hits only (the misses are not carried to the compaction at the end); each makes
+            # a reflected and a transmitted ray below from terms evaluated once per hit (evaluated
+            # on two lanes per hit, the interaction kernels took 1.1 s of the street canyon's 4.1 s)
             hits = dr.compress(keep)
             n_hits = dr.width(hits)
             if n_hits == 0:
                 return None
-            lane = dr.arange(mi.UInt32, 2 * n_hits)
-            through = lane >= n_hits
-            src = dr.gather(mi.UInt32, hits, dr.select(through, lane - n_hits, lane))
-            st = {k: dr.gather(type(v), v, src) for k, v in st.items()}
-            t, ids, prim = (dr.gather(type(v), v, src) for v in (t, ids, prim))
-            keep = dr.full(mi.Bool, True, 2 * n_hits)
-            # the transmitted ray's random numbers: a stream of its own, keyed by its parent's
-            st["idx"] = dr.select(through, _hash32(st["idx"] ^ dr.opaque(mi.UInt32, _key(depth, _DRAW_SPLIT))),
-                                  st["idx"])
+            st_in, st = st, {k: dr.gather(type(v), v, hits) for k, v in st.items()}
+            t, ids, prim = (dr.gather(type(v), v, hits) for v in (t, ids, prim))
+            keep = dr.full(mi.Bool, True, n_hits)
         d = st["d"]
         _, n = self.face_at(ids, prim, keep)
         n = dr.select(dr.dot(d, n) > 0, -n, n)  # faces the side the ray comes from
@@ -1101,16 +1096,15 @@ class Tracer:
         if split:  # each ray's energy: the reflected one's W_r = w_spec + w_diff, drawn; T E exact
             total_r = w_spec + w_diff
             u = self._uniform(st["idx"], depth, _DRAW_EVENT) * total_r
-            spec = ~through & (u < w_spec)
-            diff = ~through & ~spec
-            refr = through
+            spec = u < w_spec
+            diff, refr = ~spec, False
             # Russian roulette on the weak side of a split: a ray with less than SPLIT_MIN_SHARE
             # of the hit's energy goes on with probability share / SPLIT_MIN_SHARE, weighted by
             # its inverse (unbiased; most of Munich's walls transmit under 5 %)
-            share = dr.select(through, w_refr, total_r) / dr.maximum(total_r + w_refr, 1e-30)
-            keep_p = dr.minimum(share * (1.0 / SPLIT_MIN_SHARE), 1.0)
-            keep &= self._uniform(st["idx"], depth, _DRAW_ROULETTE) < keep_p
-            total = dr.select(through, w_refr, total_r) / dr.maximum(keep_p, 1e-30)
+            both = dr.maximum(total_r + w_refr, 1e-30)
+            keep_p = dr.minimum(total_r / both * (1.0 / SPLIT_MIN_SHARE), 1.0)
+            keep = keep & (self._uniform(st["idx"], depth, _DRAW_ROULETTE) < keep_p)
+            total = total_r / dr.maximum(keep_p, 1e-30)
         else:
             total = w_spec + w_diff + w_refr
             u = self._uniform(st["idx"], depth, _DRAW_EVENT) * total
@@ -1131,7 +1125,7 @@ class Tracer:
         new_d, new_o = d_r, mi.Point3f(p + offset * n)
         m = [st[k] - 2.0 * dr.dot(n, st[k]) * n for k in ("m0", "m1", "m2")]
         anchor = st["anchor"]
-        if self.refraction:
+        if self.refraction and refr is not False:
             k_refr = dr.sqrt(total / dr.select(refr & alive, w_refr, 1.0))
             new_re = dr.select(refr, k_refr * (c_r * e_s + g_r * e_pi), new_re)
             new_im = dr.select(refr, k_refr * (c_i * e_s + g_i * e_pi), new_im)
@@ -1144,8 +1138,6 @@ class Tracer:
             p_diff = w_diff / dr.select(total > 0, total, 1.0)  # the probability of drawing diffuse
             if self.nee is not None and sink is not None and not self.undiffused_only:
                 connect = hit & (w_diff > 0)
-                if split:
-                    connect &= ~through
                 if self.diffuse_last_only:
                     connect &= st["anchor"] == (st["tube_l0"] if "tube_l0" in st else 0.0)
                 connections = (p, n, d, d_r, w_diff, p_diff, kx, pat, length, connect)
@@ -1168,18 +1160,43 @@ class Tracer:
             alive &= ~diff
         if last:
             alive &= self._reach(new_o, new_d) > 0
+        carried = {k: st[k] for k in _CARRIED if k in st}
         new = dict(o=new_o, d=new_d, e_re=new_re, e_im=new_im, length=length, m0=m[0], m1=m[1], m2=m[2],
-                   idx=st["idx"], anchor=anchor, **extra, **{k: st[k] for k in _CARRIED if k in st})
+                   idx=st["idx"], anchor=anchor, **extra, **carried)
+        through = ()
+        if split:  # the transmitted rays: T E, on their own random stream keyed by the parent's
+            idx_t = _hash32(st["idx"] ^ dr.opaque(mi.UInt32, _key(depth, _DRAW_SPLIT)))
+            keep_p_t = dr.minimum(w_refr / both * (1.0 / SPLIT_MIN_SHARE), 1.0)
+            total_t = w_refr / dr.maximum(keep_p_t, 1e-30)
+            alive_t = hit & (self._uniform(idx_t, depth, _DRAW_ROULETTE) < keep_p_t) & (total_t > 0) & (w_refr > 0)
+            if self.diffuse_last_only:
+                alive_t &= st["anchor"] == (st["tube_l0"] if "tube_l0" in st else 0.0)
+            k_refr = dr.sqrt(total_t / dr.select(alive_t, w_refr, 1.0))
+            new_t = dict(o=mi.Point3f(p - offset * n), d=d, e_re=k_refr * (c_r * e_s + g_r * e_pi),
+                         e_im=k_refr * (c_i * e_s + g_i * e_pi), length=length, m0=st["m0"], m1=st["m1"],
+                         m2=st["m2"], idx=idx_t, anchor=st["anchor"], **carried)
+            if "dir_pdf" in extra:
+                new_t["dir_pdf"] = dr.zeros(mi.Float, dr.width(alive_t))
+            new_t = {k: new_t[k] for k in new}  # the same fields in the same order
+            alive_t &= ~((d.z < 0) & (p.z <= self.floor_z))
+            if last:
+                alive_t &= self._reach(new_t["o"], d) > 0
+            through = (new_t, alive_t)
         if connections is not None:
             # the next state and the connections' inputs in one kernel over the hits: both are
             # lazy expressions of the same reflection terms, and evaluated apart (a gather from a
             # lazy array evaluates it in a kernel of its own) those ran up to four times a bounce
             # (the street canyon, every mechanism, 1e7 rays: 2.9 s of kernels in _connect, 1.7 after)
-            dr.eval(alive, *new.values(), *connections)
-            self._connect(st, *connections, depth, sink)
+            dr.eval(alive, *new.values(), *(through[1], *through[0].values()) if split else (), *connections)
+            # the connections read the incoming state where it is evaluated (a gather from the
+            # hits' lazy gathers would evaluate each field in a kernel of its own)
+            self._connect(st_in if split else st, *connections, depth, sink, hits if split else None)
+        if split:  # the reflected rays first, then the transmitted ones
+            return _compact_pair(dr, mi, new, alive, *through)
         return _compact(dr, new, alive)
 
-    def _connect(self, st, p, n, d, d_r, w_diff, p_diff, kx, pat, length, active, depth: int, sink) -> None:
+    def _connect(self, st, p, n, d, d_r, w_diff, p_diff, kx, pat, length, active, depth: int, sink,
+                 st_lanes=None) -> None:
         """Next-event estimation of the diffuse reflections: each active hit (point ``p``, face
         normal ``n`` towards the incoming side, diffuse energy ``w_diff``, path length ``length``
         to ``p``) is joined to ``per_hit`` cells on average (``floor`` of them always, one more
@@ -1195,7 +1212,8 @@ class Tracer:
         crosses by chance once in millions gets its share from every hit it sees; near the hit
         the scattered rays carry it. Delay and directions are the cell centre's, as every other
         deposit's. Its inputs come evaluated (:meth:`_interact` evaluates them with the next ray
-        state in one kernel)."""
+        state in one kernel); ``st_lanes``: the lane of ray state ``st`` that each of their lanes
+        is (None: the same lane)."""
         dr, mi, nee, g = self.dr, self.mi, self.nee, self.g
         lanes = dr.compress(active)
         m = dr.width(lanes)
@@ -1203,19 +1221,23 @@ class Tracer:
             return
         # three stages, each on the lanes the last one kept (a kernel computes its masked lanes
         # too): the connections drawn, those whose point sees the hit, their deposits
+        def of_st(key):  # the ray state's field on the lanes src names now
+            at = src if st_lanes is None else dr.gather(mi.UInt32, st_lanes, src)
+            return dr.gather(type(st[key]), st[key], at)
+
         k_max = int(np.ceil(nee["per_hit"]))
         rep = dr.arange(mi.UInt32, k_max * m)
         k = rep // m
         src = dr.gather(mi.UInt32, lanes, rep - k * m)
         unit = lambda b: mi.Float(b >> 8) * (2.0**-24)  # noqa: E731
         if nee["per_hit"] != k_max:  # the last connection of a hit is drawn
-            idx = dr.gather(mi.UInt32, st["idx"], src)
+            idx = of_st("idx")
             drawn = unit(self._bits(idx, depth, _DRAW_NEE_TAKE, k)) < dr.clip(nee["per_hit"] - mi.Float(k), 0.0, 1.0)
             src, k = _kept(dr, drawn, src, k)
             if src is None:
                 return
         take = lambda v: dr.gather(type(v), v, src)  # noqa: E731
-        idx = take(st["idx"])
+        idx = of_st("idx")
         # a candidate cell with probability 1 / candidates (64-bit product: no bias from rounding)
         j = mi.UInt32((mi.UInt64(self._bits(idx, depth, _DRAW_NEE_CELL, k)) * nee["num"]) >> 32)
         x0, y0, z = (dr.gather(mi.Float, nee[c], j) for c in ("x0", "y0", "z"))
@@ -1238,7 +1260,7 @@ class Tracer:
         v = mi.Point3f(tx, ty, tz) - ph
         r2 = dr.squared_norm(v)
         ko = v / dr.sqrt(r2)
-        e_re, e_im = self._scattered_field(dh, ko, take(st["e_re"]), take(st["e_im"]), take(kx), take(w_diff) * fs)
+        e_re, e_im = self._scattered_field(dh, ko, of_st("e_re"), of_st("e_im"), take(kx), take(w_diff) * fs)
         # a crossing's power scale and 1 / |cos| times the crossing density |cos| / r^2, over the
         # two strategies' densities per m^2 (the balance heuristic)
         p_ray = take(p_diff) * q * dr.abs(ko.z) / r2
@@ -1250,9 +1272,9 @@ class Tracer:
         # the launch direction: the mirror product's transpose applied to the incoming direction
         # (rank one after a diffuse bounce or a diffraction: the departure it carries), on the
         # departure grid as the scattered ray's own
-        d_dep = on_departure_grid(mi.Vector3f(*(dr.dot(take(st[c]), dh) for c in ("m0", "m1", "m2"))))
+        d_dep = on_departure_grid(mi.Vector3f(*(dr.dot(of_st(c), dh) for c in ("m0", "m1", "m2"))))
         out = dict(cell=dr.gather(mi.UInt32, nee["cell"], j), power=power, dist=take(length) + r_c)
-        out.update({k_: take(st[k_]) for k_ in TAGS if k_ in st})
+        out.update({k_: of_st(k_) for k_ in TAGS if k_ in st})
         if "lattice_bin" in out:  # a diffuse hit's connection: no bin's
             out["lattice_bin"] = dr.full(mi.UInt32, NOT_A_BIN, dr.width(power))
         out.update(direction_terms(d_c, d_dep, self.rot, self.with_beams))
@@ -1350,6 +1372,31 @@ def _compact(dr, state: dict, active) -> dict | None:
     go on after an interaction."""
     kept = _kept(dr, active, *state.values())
     return None if kept[0] is None else dict(zip(state, kept))
+
+
+def _compact_pair(dr, mi, first: dict, active_first, second: dict, active_second) -> dict | None:
+    """The ``active_first`` lanes of ray state ``first`` followed by the ``active_second`` lanes
+    of ``second`` (the same fields), evaluated in one kernel (None when none is left)."""
+    dr.eval(active_first, active_second, *first.values(), *second.values())
+    sel_a, sel_b = dr.compress(active_first), dr.compress(active_second)
+    n_a, n_b = dr.width(sel_a), dr.width(sel_b)
+    if n_a + n_b == 0:
+        return None
+    lane = dr.arange(mi.UInt32, n_a + n_b)
+    in_a = lane < n_a
+    i_a = dr.gather(mi.UInt32, sel_a, lane, in_a) if n_a else None
+    i_b = dr.gather(mi.UInt32, sel_b, lane - n_a, ~in_a) if n_b else None
+    out = {}
+    for k, a in first.items():
+        b = second[k]
+        if n_b == 0:
+            out[k] = dr.gather(type(a), a, i_a)
+        elif n_a == 0:
+            out[k] = dr.gather(type(b), b, i_b)
+        else:  # masked gathers: each output lane reads one of the two
+            out[k] = dr.select(in_a, dr.gather(type(a), a, i_a, in_a), dr.gather(type(b), b, i_b, ~in_a))
+    dr.eval(*out.values())
+    return out
 
 
 def _unique_keys(dr, key, active, rounds: int = 2) -> np.ndarray:
