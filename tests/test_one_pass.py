@@ -490,6 +490,40 @@ def test_a_dft_grid_of_beams_is_found_separable_and_its_factors_give_every_beam(
     assert op.separable_codebook(cb[:, :63] / np.linalg.norm(cb[:, :63], axis=1, keepdims=True), pos[:63]) is None
 
 
+@pytest.mark.parametrize("cache_bits", [15, 2])  # 2: four slots, nearly every deposit evicts one
+def test_separable_beam_sums_give_each_deposit_the_beams_of_its_key(monkeypatch, cache_bits):
+    """A Kronecker codebook's beam sums (``_SeparableBeamSums``: axis tables over the key's grid of
+    direction cosines, a direct-mapped cache of (cell, key) sums, factor-pair sums folded into
+    beams) against the definition: per deposit ``p |w_b^T v(u)|^2`` with ``u`` the key's
+    quantised direction cosines as they are, summed per cell; two deposit sets, cells in both,
+    repeated keys, and a fold that empties the sums."""
+    monkeypatch.setattr(op, "BEAM_CACHE_BITS", cache_bits)
+    lam = 0.1
+    yy, zz = np.meshgrid(np.arange(8) * lam / 2, np.arange(8) * lam / 2, indexing="ij")
+    pos = np.stack([np.full(64, 0.3), yy.ravel() - 0.1, zz.ravel() + 0.2], -1)
+    cb = dft_codebook(pos, lam, 8, 8).weights
+    sep = op.separable_codebook(cb, pos)
+    k = 2 * np.pi / lam
+    rng = np.random.default_rng(4)
+    dirs = rng.normal(size=(40, 3))  # few directions: deposits repeat (cell, key) pairs
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    q = np.round(dirs / sb.DIRECTION_QUANTUM).astype(np.int64)
+    keys = ((q[:, 0] + sb.Q_OFFSET) << 2 * sb.Q_BITS) | ((q[:, 1] + sb.Q_OFFSET) << sb.Q_BITS) | (q[:, 2] + sb.Q_OFFSET)
+    factors = np.abs(np.exp(1j * k * (q * sb.DIRECTION_QUANTUM) @ pos.T) @ cb.T) ** 2
+    sums = op._SeparableBeamSums(30, sep, k)
+    want = np.zeros((30, 64))
+    for n in (5000, 3000):
+        cell, which = rng.integers(0, 30, n), rng.integers(0, 40, n)
+        p = rng.random(n).astype(np.float32)
+        sums.add(cell, keys[which], p)
+        np.add.at(want, cell, p[:, None].astype(np.float64) * factors[which])
+    got = np.zeros((30, 64))
+    sums.fold_into(got)
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12 * want.max())
+    sums.fold_into(got)  # emptied: nothing more
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12 * want.max())
+
+
 def test_one_loop_of_per_cell_sums_equals_a_bincount_per_moment():
     """The fused, GIL-free loop (``_accumulate_deposits``) against the numpy reference it replaced:
     one ``np.bincount`` per moment and ``np.minimum.at`` for the earliest delay, over two deposit

@@ -126,11 +126,17 @@ LATTICE_NOISE_SHARE = 0.5
 DEFAULT_DIFFUSE_CONNECTIONS = 0.5
 BEAM_CHUNK = 4096  # directions per step of beam_factors (3x faster than all at once on 2e5)
 _INF_BITS = 0x7F800000  # float32 +inf as uint32
-# (cell, direction) groups whose beams wait for one evaluation: their table (_GroupSums, at most
-# half full, 24 bytes a slot) with one more deposit set's groups fits a 32 MB cache. Few groups
+# (cell, direction) groups whose beams wait for one evaluation (a codebook that is not a Kronecker
+# product; a Kronecker one's: BEAM_CACHE_BITS): their table (_GroupSums, at most half full, 24
+# bytes a slot) with one more deposit set's groups fits a 32 MB cache. Few groups
 # recur between evaluations (street canyon, every mechanism, 1e7 rays: 4.7 M groups in 15, 4.4 M
 # in 2), and the table's random accesses cost 1.4 s at this size against 3.0 s at 4 M groups
 MAX_PENDING_GROUPS = 1 << 18
+# slots of the direct-mapped cache in which a Kronecker codebook's beam sums combine deposits of
+# the same (cell, direction) before their beams are added (_SeparableBeamSums), 24 bytes a slot.
+# The street canyon's 27.6 M deposits (every mechanism, 1e7 rays) leave 27.4 M / 5.15 M / 4.91 M
+# sums to add at 2^0 / 2^12 / 2^15 slots; 2^12 (96 kB) stays in a core's L2 beside the tracer
+BEAM_CACHE_BITS = 12
 
 
 @dataclass
@@ -189,8 +195,10 @@ class _Accumulator:
         # sum p and sum p^2 per cell of the deposits with a lattice bin (lattice rays never diffused)
         self.binned_power: np.ndarray | None = None
         self.binned_power_sq: np.ndarray | None = None
-        # power sums per (cell, direction key) of the deposits whose beams are still to add
+        # power sums per (cell, direction key) of the deposits whose beams are still to add (a
+        # Kronecker codebook's: _SeparableBeamSums, made at the first deposit set)
         self.beam_groups = _GroupSums()
+        self.beam_sums: _SeparableBeamSums | None = None
 
     def __call__(self, dep: dict[str, np.ndarray], line_of_sight: bool) -> None:
         m = self.m
@@ -209,7 +217,13 @@ class _Accumulator:
             # group here, the factors evaluated once per direction for many sets in _add_beams
             # (a path's direction recurs in every batch: per set, a quarter of a GPU run's time).
             dkey = dep["dkey"]  # Dr.Jit's UInt64: the same bits as int64 (keys use 3 Q_BITS < 63 bits)
-            self.beam_groups.add(cell, dkey.view(np.int64) if dkey.dtype == np.uint64 else dkey.astype(np.int64), p)
+            dkey = dkey.view(np.int64) if dkey.dtype == np.uint64 else dkey.astype(np.int64)
+            if self.separable is not None:
+                if self.beam_sums is None:
+                    self.beam_sums = _SeparableBeamSums(len(self.m.power), self.separable, self.k)
+                self.beam_sums.add(cell, dkey, p)
+                return
+            self.beam_groups.add(cell, dkey, p)
             if len(self.beam_groups) > MAX_PENDING_GROUPS:
                 self._add_beams()
 
@@ -234,7 +248,9 @@ class _Accumulator:
     def _add_beams(self) -> None:
         """Adds the pending groups' beam powers: the factor of each group's direction, quantised
         to DIRECTION_QUANTUM in the device frame (the key, made on the Dr.Jit side: the same for a
-        ray whatever its batch), times the group's power."""
+        ray whatever its batch), times the group's power; a Kronecker codebook's sums folded in."""
+        if self.beam_sums is not None:
+            self.beam_sums.fold_into(self.m.beam_power)
         if not len(self.beam_groups):
             return
         g_cell, g_dkey, pg = self.beam_groups.drain()
@@ -365,11 +381,11 @@ class _DeviceAccumulator(_Accumulator):
         mask = (1 << Q_BITS) - 1
         u = [mi.Float(mi.Int32(mi.UInt32((dkey >> (k * Q_BITS)) & mask)) - Q_OFFSET) * DIRECTION_QUANTUM
              for k in (2, 1, 0)]
-        inv = dr.rsqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
-        u = [c * inv for c in u]
-        if self.separable is not None:
+        if self.separable is not None:  # at the key's direction cosines as they are (_SeparableBeamSums)
             self._add_separable_beam_powers(cell, p, u)
             return
+        inv = dr.rsqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+        u = [c * inv for c in u]
         v = [dr.sincos(u[0] * float(q[0]) + u[1] * float(q[1]) + u[2] * float(q[2])) for q in self.kpos]
         num_beams, num_ant = self.num_beams, len(v)
         w_re, w_im = self.d_codebook
@@ -510,7 +526,8 @@ def _accumulate_deposits(cell, power, dist, cos0, cos1, cos2, cos3, sin0, sin1, 
 
 
 class _GroupSums:
-    """Sums of deposit powers per distinct (cell, direction key), in deposit order: an
+    """Sums of deposit powers per distinct (cell, direction key), in deposit order, for a codebook
+    that is not a Kronecker product (a Kronecker one's: :class:`_SeparableBeamSums`): an
     open-addressing hash table (linear probing, at most half full) that a compiled loop fills
     without the GIL, beside the tracer. Diffracted and diffuse paths leave on
     DEPARTURE_QUANTUM's grid, so a cell gets many directions (the street canyon, every mechanism,
@@ -548,6 +565,99 @@ class _GroupSums:
         _drain_groups(self.cell, self.dkey, self.sum, *out)
         self.used[0] = 0
         return out
+
+
+class _SeparableBeamSums:
+    """Beam powers of a Kronecker codebook (:func:`separable_codebook`), summed without grouping
+    every deposit first. A beam's factor is the product of its two axes' factors, and an axis
+    factor ``|a_k^T v_x(u)|^2`` depends on one direction cosine alone, which the direction key
+    holds on DIRECTION_QUANTUM's grid: each axis gets a table over that grid (2 x 2^15 x 8
+    values for an 8 x 8 DFT grid), and a cell sums ``p |a_i^T v_x|^2 |c_j^T v_y|^2`` per factor
+    pair (i, j), scaled into its beams at the end (:meth:`fold_into`). Deposits of the same (cell,
+    direction) in a row combine first in a small direct-mapped cache (BEAM_CACHE_BITS slots): the
+    street canyon's 29 M deposits make 4.7 M groups, mostly within a batch. The axis factors are
+    evaluated at the key's direction cosines as they are (no renormalisation of the quantised
+    vector: the quantum bounds either's error), in deposit order: bitwise repeatable. It replaced
+    a hash table of every group, the factors of each distinct direction and a loop over the groups
+    (street canyon: 2.4 s of the sums' 4.0 s; docs/ckm-one-pass.md, "Session 33")."""
+
+    def __init__(self, num_cells: int, separable: dict, wavenumber_rad_per_m: float):
+        a, c = separable["a"], separable["c"]
+        self.pair_power = np.zeros((num_cells, a.shape[1] * c.shape[1]))
+        u = (np.arange(1 << Q_BITS) - Q_OFFSET) * DIRECTION_QUANTUM  # every value a key's field holds
+        self.axis_power = []
+        for x, f in zip(separable["coords"], (a, c)):
+            v = np.exp(1j * wavenumber_rad_per_m * u[:, None] * np.asarray(x)[None, :])
+            self.axis_power.append(np.ascontiguousarray(np.abs(v @ f) ** 2))
+        # a key's fields, from the top: the device-frame components 0, 1, 2 (_Accumulator._add_beams)
+        self.shifts = [(2 - d) * Q_BITS for d in separable["axes"]]
+        self.pair_of_beam = separable["a_of_beam"] * c.shape[1] + separable["c_of_beam"]
+        self.scale = separable["scale"]
+        self.t_cell = np.full(1 << BEAM_CACHE_BITS, -1, np.int64)  # -1: an empty slot
+        self.t_dkey = np.zeros(1 << BEAM_CACHE_BITS, np.int64)
+        self.t_sum = np.zeros(1 << BEAM_CACHE_BITS, np.float64)
+
+    def add(self, cell: np.ndarray, dkey: np.ndarray, power: np.ndarray) -> None:
+        _add_to_beam_cache(self.t_cell, self.t_dkey, self.t_sum, self.pair_power, *self.axis_power, *self.shifts,
+                           cell, dkey, power)
+
+    def fold_into(self, beam_power: np.ndarray) -> None:
+        """Adds the sums so far to ``beam_power`` [cells, beams], each beam its factor pair's sum
+        times its scale; the sums emptied."""
+        _flush_beam_cache(self.t_cell, self.t_dkey, self.t_sum, self.pair_power, *self.axis_power, *self.shifts)
+        _fold_pairs(beam_power, self.pair_power, self.pair_of_beam, self.scale)
+
+
+@_compiled
+def _add_pair_power(pair_power, power0, power1, shift0, shift1, c, k, s):
+    """``pair_power[c, i * n_c + j] += s * power0[u0, i] * power1[u1, j]``, ``u0`` and ``u1`` the
+    fields of key ``k`` at ``shift0`` and ``shift1``, ``n_c`` the second axis's factors."""
+    mask = np.int64((1 << Q_BITS) - 1)
+    r0, r1 = power0[(k >> shift0) & mask], power1[(k >> shift1) & mask]
+    row, n_c = pair_power[c], len(r1)
+    for i in range(len(r0)):
+        w = s * r0[i]
+        for j in range(n_c):
+            row[i * n_c + j] += w * r1[j]
+
+
+@_compiled
+def _add_to_beam_cache(t_cell, t_dkey, t_sum, pair_power, power0, power1, shift0, shift1, cell, dkey, power):
+    """Each deposit into its slot of the direct-mapped cache: added to the slot's sum where the
+    slot holds its (cell, key), else the slot's sum goes to ``pair_power`` and the deposit takes it."""
+    mask = np.uint64(len(t_cell) - 1)
+    for i in range(len(cell)):
+        c, k = np.int64(cell[i]), np.int64(dkey[i])
+        # splitmix64's finaliser, as _add_to_groups
+        h = np.uint64(c) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(k)
+        h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        slot = np.int64((h ^ (h >> np.uint64(31))) & mask)
+        if t_cell[slot] == c and t_dkey[slot] == k:
+            t_sum[slot] += np.float64(power[i])
+            continue
+        if t_cell[slot] >= 0:
+            _add_pair_power(pair_power, power0, power1, shift0, shift1, t_cell[slot], t_dkey[slot], t_sum[slot])
+        t_cell[slot], t_dkey[slot], t_sum[slot] = c, k, np.float64(power[i])
+
+
+@_compiled
+def _flush_beam_cache(t_cell, t_dkey, t_sum, pair_power, power0, power1, shift0, shift1):
+    """Every occupied slot's sum to ``pair_power``, in slot order; the cache emptied."""
+    for slot in range(len(t_cell)):
+        if t_cell[slot] >= 0:
+            _add_pair_power(pair_power, power0, power1, shift0, shift1, t_cell[slot], t_dkey[slot], t_sum[slot])
+            t_cell[slot], t_sum[slot] = -1, 0.0
+
+
+@_compiled
+def _fold_pairs(beam_power, pair_power, pair_of_beam, scale):
+    """``beam_power[c, b] += pair_power[c, pair_of_beam[b]] * scale[b]``; ``pair_power`` zeroed."""
+    for c in range(len(beam_power)):
+        row, pairs = beam_power[c], pair_power[c]
+        for b in range(len(row)):
+            row[b] += pairs[pair_of_beam[b]] * scale[b]
+        pairs[:] = 0.0
 
 
 @_compiled
