@@ -212,17 +212,17 @@ class _Accumulator:
                              m.los_power, m.count, m.min_delay_s, m.p_excess_delay_s, m.p_excess_delay2_s2,
                              m.p_cos, m.p_sin)
         if self.codebook is not None and not line_of_sight:  # line of sight: in moments()
-            # Deposits of a cell that share a departure direction (one path: the same direction up
-            # to float32 noise after the image-source correction) share a beam factor: summed per
-            # group here, the factors evaluated once per direction for many sets in _add_beams
-            # (a path's direction recurs in every batch: per set, a quarter of a GPU run's time).
             dkey = dep["dkey"]  # Dr.Jit's UInt64: the same bits as int64 (keys use 3 Q_BITS < 63 bits)
             dkey = dkey.view(np.int64) if dkey.dtype == np.uint64 else dkey.astype(np.int64)
-            if self.separable is not None:
+            if self.separable is not None:  # per deposit, from its key's axis factors
                 if self.beam_sums is None:
                     self.beam_sums = _SeparableBeamSums(len(self.m.power), self.separable, self.k)
                 self.beam_sums.add(cell, dkey, p)
                 return
+            # Deposits of a cell that share a departure direction (one path: the same direction up
+            # to float32 noise after the image-source correction) share a beam factor: summed per
+            # group here, the factors evaluated once per direction for many sets in _add_beams
+            # (a path's direction recurs in every batch: per set, a quarter of a GPU run's time).
             self.beam_groups.add(cell, dkey, p)
             if len(self.beam_groups) > MAX_PENDING_GROUPS:
                 self._add_beams()
@@ -575,9 +575,10 @@ class _SeparableBeamSums:
     values for an 8 x 8 DFT grid), and a cell sums ``p |a_i^T v_x|^2 |c_j^T v_y|^2`` per factor
     pair (i, j), scaled into its beams at the end (:meth:`fold_into`). Deposits of the same (cell,
     direction) in a row combine first in a small direct-mapped cache (BEAM_CACHE_BITS slots): the
-    street canyon's 29 M deposits make 4.7 M groups, mostly within a batch. The axis factors are
-    evaluated at the key's direction cosines as they are (no renormalisation of the quantised
-    vector: the quantum bounds either's error), in deposit order: bitwise repeatable. It replaced
+    street canyon's 27.6 M deposits (every mechanism, 1e7 rays) make 4.5 M groups, mostly within
+    a batch. The axis factors are evaluated at the key's direction cosines as they are (no
+    renormalisation of the quantised vector: the quantum bounds either's error), in deposit
+    order: bitwise repeatable. It replaced
     a hash table of every group, the factors of each distinct direction and a loop over the groups
     (street canyon: 2.4 s of the sums' 4.0 s; docs/ckm-one-pass.md, "Session 33")."""
 
