@@ -260,7 +260,7 @@ class _Accumulator:
         mask = (1 << Q_BITS) - 1
         u = (np.stack([(keys >> (k * Q_BITS)) & mask for k in (2, 1, 0)], -1) - Q_OFFSET) * DIRECTION_QUANTUM
         u /= np.linalg.norm(u, axis=1, keepdims=True)
-        gains = beam_factors(self.codebook, self.ant, u, self.k, self.separable)
+        gains = beam_factors(self.codebook, self.ant, u, self.k)  # groups: not a Kronecker codebook
         # beam power of a cell = sum over its groups of group power x the group direction's factors
         # (a compiled loop: no sort of the groups by cell, no sparse matrix, no gathered copy)
         _add_group_beams(self.m.beam_power, g_cell, inverse.astype(np.int64), pg, gains)
@@ -578,9 +578,9 @@ class _SeparableBeamSums:
     street canyon's 27.6 M deposits (every mechanism, 1e7 rays) make 4.5 M groups, mostly within
     a batch. The axis factors are evaluated at the key's direction cosines as they are (no
     renormalisation of the quantised vector: the quantum bounds either's error), in deposit
-    order: bitwise repeatable. It replaced
-    a hash table of every group, the factors of each distinct direction and a loop over the groups
-    (street canyon: 2.4 s of the sums' 4.0 s; docs/ckm-one-pass.md, "Session 33")."""
+    order: bitwise repeatable. It replaced a hash table of every group, the factors of each
+    distinct direction and a loop over the groups (street canyon: 2.4 s of the sums' 4.0 s;
+    docs/ckm-one-pass.md, "Session 33")."""
 
     def __init__(self, num_cells: int, separable: dict, wavenumber_rad_per_m: float):
         a, c = separable["a"], separable["c"]
@@ -610,6 +610,16 @@ class _SeparableBeamSums:
 
 
 @_compiled
+def _slot_of(c, k, mask):
+    """The hash slot of (cell ``c``, key ``k``) in a table of ``mask + 1`` slots: splitmix64's
+    finaliser, so that every key bit reaches the low bits the mask keeps."""
+    h = np.uint64(c) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(k)
+    h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return np.int64((h ^ (h >> np.uint64(31))) & mask)
+
+
+@_compiled
 def _add_pair_power(pair_power, power0, power1, shift0, shift1, c, k, s):
     """``pair_power[c, i * n_c + j] += s * power0[u0, i] * power1[u1, j]``, ``u0`` and ``u1`` the
     fields of key ``k`` at ``shift0`` and ``shift1``, ``n_c`` the second axis's factors."""
@@ -629,11 +639,7 @@ def _add_to_beam_cache(t_cell, t_dkey, t_sum, pair_power, power0, power1, shift0
     mask = np.uint64(len(t_cell) - 1)
     for i in range(len(cell)):
         c, k = np.int64(cell[i]), np.int64(dkey[i])
-        # splitmix64's finaliser, as _add_to_groups
-        h = np.uint64(c) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(k)
-        h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-        h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-        slot = np.int64((h ^ (h >> np.uint64(31))) & mask)
+        slot = _slot_of(c, k, mask)
         if t_cell[slot] == c and t_dkey[slot] == k:
             t_sum[slot] += np.float64(power[i])
             continue
@@ -688,11 +694,7 @@ def _add_to_groups(t_cell, t_dkey, t_sum, used, cell, dkey, power, start):
     mask = np.uint64(len(t_cell) - 1)
     for i in range(start, len(cell)):
         c, k = np.int64(cell[i]), np.int64(dkey[i])
-        # splitmix64's finaliser: every key bit reaches the low bits the mask keeps
-        h = np.uint64(c) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(k)
-        h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-        h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-        slot = np.int64((h ^ (h >> np.uint64(31))) & mask)
+        slot = _slot_of(c, k, mask)
         while t_cell[slot] >= 0 and (t_cell[slot] != c or t_dkey[slot] != k):
             slot = np.int64((np.uint64(slot) + np.uint64(1)) & mask)
         if t_cell[slot] < 0:

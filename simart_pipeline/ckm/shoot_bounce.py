@@ -1061,8 +1061,9 @@ class Tracer:
         split = self.refraction and (self.specular or self.diffuse)
         if split:
             # the hits only (the misses are not carried to the compaction at the end); each makes
-            # a reflected and a transmitted ray below from terms evaluated once per hit (evaluated
-            # on two lanes per hit, the interaction kernels took 1.1 s of the street canyon's 4.1 s)
+            # a reflected and a transmitted ray below from terms evaluated once per hit (on two
+            # lanes per hit they were evaluated twice; the two-sided compaction costs about what
+            # that saves, docs/ckm-one-pass.md "Session 33")
             hits = dr.compress(keep)
             n_hits = dr.width(hits)
             if n_hits == 0:
@@ -1114,7 +1115,8 @@ class Tracer:
         chosen = dr.select(spec, w_spec, dr.select(diff, w_diff, w_refr))
         alive = keep & (total > 0) & (chosen > 0)
         if self.diffuse_last_only:  # a ray diffused before (its delay restarted there) ends here
-            alive &= st["anchor"] == (st["tube_l0"] if "tube_l0" in st else 0.0)
+            undiffused = st["anchor"] == (st["tube_l0"] if "tube_l0" in st else 0.0)
+            alive &= undiffused
         p = st["o"] + t * d
         offset = (1.0 + dr.max(dr.abs(p))) * _SPAWN_EPSILON
         length = st["length"] + t
@@ -1139,7 +1141,7 @@ class Tracer:
             if self.nee is not None and sink is not None and not self.undiffused_only:
                 connect = hit & (w_diff > 0)
                 if self.diffuse_last_only:
-                    connect &= st["anchor"] == (st["tube_l0"] if "tube_l0" in st else 0.0)
+                    connect &= undiffused
                 connections = (p, n, d, d_r, w_diff, p_diff, kx, pat, length, connect)
             ko, w_pat, q_dir = self._diffuse_direction(d, n, d_r, pat, st["idx"], depth)
             alive &= ~diff | (w_pat > 0)
@@ -1163,14 +1165,14 @@ class Tracer:
         carried = {k: st[k] for k in _CARRIED if k in st}
         new = dict(o=new_o, d=new_d, e_re=new_re, e_im=new_im, length=length, m0=m[0], m1=m[1], m2=m[2],
                    idx=st["idx"], anchor=anchor, **extra, **carried)
-        through = ()
+        pending = (alive, *new.values())  # the next state(s), evaluated with the connections
         if split:  # the transmitted rays: T E, on their own random stream keyed by the parent's
             idx_t = _hash32(st["idx"] ^ dr.opaque(mi.UInt32, _key(depth, _DRAW_SPLIT)))
             keep_p_t = dr.minimum(w_refr / both * (1.0 / SPLIT_MIN_SHARE), 1.0)
             total_t = w_refr / dr.maximum(keep_p_t, 1e-30)
             alive_t = hit & (self._uniform(idx_t, depth, _DRAW_ROULETTE) < keep_p_t) & (total_t > 0) & (w_refr > 0)
             if self.diffuse_last_only:
-                alive_t &= st["anchor"] == (st["tube_l0"] if "tube_l0" in st else 0.0)
+                alive_t &= undiffused
             k_refr = dr.sqrt(total_t / dr.select(alive_t, w_refr, 1.0))
             new_t = dict(o=mi.Point3f(p - offset * n), d=d, e_re=k_refr * (c_r * e_s + g_r * e_pi),
                          e_im=k_refr * (c_i * e_s + g_i * e_pi), length=length, m0=st["m0"], m1=st["m1"],
@@ -1181,18 +1183,18 @@ class Tracer:
             alive_t &= ~((d.z < 0) & (p.z <= self.floor_z))
             if last:
                 alive_t &= self._reach(new_t["o"], d) > 0
-            through = (new_t, alive_t)
+            pending += (alive_t, *new_t.values())
         if connections is not None:
             # the next state and the connections' inputs in one kernel over the hits: both are
             # lazy expressions of the same reflection terms, and evaluated apart (a gather from a
             # lazy array evaluates it in a kernel of its own) those ran up to four times a bounce
             # (the street canyon, every mechanism, 1e7 rays: 2.9 s of kernels in _connect, 1.7 after)
-            dr.eval(alive, *new.values(), *(through[1], *through[0].values()) if split else (), *connections)
+            dr.eval(*pending, *connections)
             # the connections read the incoming state where it is evaluated (a gather from the
             # hits' lazy gathers would evaluate each field in a kernel of its own)
             self._connect(st_in if split else st, *connections, depth, sink, hits if split else None)
         if split:  # the reflected rays first, then the transmitted ones
-            return _compact_pair(dr, mi, new, alive, *through)
+            return _compact_pair(dr, mi, new, alive, new_t, alive_t)
         return _compact(dr, new, alive)
 
     def _connect(self, st, p, n, d, d_r, w_diff, p_diff, kx, pat, length, active, depth: int, sink,
@@ -1382,19 +1384,15 @@ def _compact_pair(dr, mi, first: dict, active_first, second: dict, active_second
     n_a, n_b = dr.width(sel_a), dr.width(sel_b)
     if n_a + n_b == 0:
         return None
-    lane = dr.arange(mi.UInt32, n_a + n_b)
-    in_a = lane < n_a
-    i_a = dr.gather(mi.UInt32, sel_a, lane, in_a) if n_a else None
-    i_b = dr.gather(mi.UInt32, sel_b, lane - n_a, ~in_a) if n_b else None
-    out = {}
-    for k, a in first.items():
-        b = second[k]
-        if n_b == 0:
-            out[k] = dr.gather(type(a), a, i_a)
-        elif n_a == 0:
-            out[k] = dr.gather(type(b), b, i_b)
-        else:  # masked gathers: each output lane reads one of the two
-            out[k] = dr.select(in_a, dr.gather(type(a), a, i_a, in_a), dr.gather(type(b), b, i_b, ~in_a))
+    if n_a == 0 or n_b == 0:  # one side only
+        state, sel = (first, sel_a) if n_b == 0 else (second, sel_b)
+        out = {k: dr.gather(type(v), v, sel) for k, v in state.items()}
+    else:  # masked gathers: each output lane reads one of the two
+        lane = dr.arange(mi.UInt32, n_a + n_b)
+        in_a = lane < n_a
+        i_a, i_b = dr.gather(mi.UInt32, sel_a, lane, in_a), dr.gather(mi.UInt32, sel_b, lane - n_a, ~in_a)
+        out = {k: dr.select(in_a, dr.gather(type(a), a, i_a, in_a), dr.gather(type(second[k]), second[k], i_b, ~in_a))
+               for k, a in first.items()}
     dr.eval(*out.values())
     return out
 
