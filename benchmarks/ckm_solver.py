@@ -212,9 +212,18 @@ REFERENCE_CHECK_SAMPLES = 10**7
 # x samples per receiver (14 GB at 1e8) and costs 4 s per receiver at 1e7 on Munich, the default
 # one 5 s at 1e8. Centres only (9 points per cell would cost 9x): a cell whose shadow edge crosses
 # it differs at its centre from its mean, so these errors bound the one-pass's from above.
-CONVERGED_REFERENCE_SETS = ("diffraction",)
+CONVERGED_REFERENCE_SETS = ("diffraction", "all")
 CONVERGED_REFERENCE_CELLS = (4, 40)  # (quick, full)
 CONVERGED_REFERENCE_SAMPLES = 10**8
+# With diffuse reflection the converged reference merges two runs (merged_paths): the diffuse paths
+# of a deterministic run at CONVERGED_DIFFUSE_SAMPLES (PathSolver makes one per sampled hit on a lit
+# surface: 1e8 samples would hold ten times 1e7's paths per receiver, up to 250,000 on the canyon,
+# every antenna pair), every other path of a default-generator run at CONVERGED_REFERENCE_SAMPLES
+# with diffuse reflection off. Munich, 20 cells of the every-mechanism set at their centres: the
+# 1e6 reference is 13.1 dB p95 from this one and picks another best beam in 21 % of them; 35 s per
+# receiver (docs/ckm-one-pass.md, "Session 34"). Traced CONVERGED_CELLS_PER_TRACE cells at a time.
+CONVERGED_DIFFUSE_SAMPLES = 10**7
+CONVERGED_CELLS_PER_TRACE = 2
 # The estimator's own convergence, apart from PathSolver's: the one-pass map against the same
 # solver's map with CONVERGED_SAMPLES_FACTOR times the diffraction samples and point deposits (the
 # unbiased estimator; on Munich its 8x map is within 1.7 dB p95 of its 32x one), and the point
@@ -707,23 +716,38 @@ def reference_check(radio, tx, ori, centres_xyz: np.ndarray, fast_at: dict, ref_
 
 
 def against_converged_reference(radio, tx, ori, centres_xyz: np.ndarray, fast_at: dict, codebook,
-                                samples: int = CONVERGED_REFERENCE_SAMPLES, points_per_cell: int = 1) -> dict:
+                                samples: int = CONVERGED_REFERENCE_SAMPLES, points_per_cell: int = 1,
+                                diffuse_samples: int = CONVERGED_DIFFUSE_SAMPLES) -> dict:
     """PathSolver at ``samples`` per source (Sionna's default candidate generator) at the cell
     centres ``centres_xyz`` [cells, 3] (``points_per_cell`` 9: at 3 x 3 points per cell, like the main
     reference, 9x the time): the one-pass layers ``fast_at`` of those cells against it
     (:func:`_compare`: at the centres, and against the 3 x 3 points pooled), the cells each
-    reaches, and the time."""
+    reaches, and the time. With diffuse reflection on, the diffuse paths come from a deterministic
+    run at ``diffuse_samples`` (:func:`merged_paths`, :data:`CONVERGED_DIFFUSE_SAMPLES`), traced
+    :data:`CONVERGED_CELLS_PER_TRACE` cells at a time."""
     if points_per_cell not in (1, 9):
         raise ValueError(f"points_per_cell must be 1 or 9, got {points_per_cell}")
-    points = centres_xyz if points_per_cell == 1 else _cell_points(centres_xyz)
-    with _samples(radio, samples):
-        t = time.perf_counter()
-        paths = radio.trace(tx[None], ori[None], points, deterministic=False)
-        s = time.perf_counter() - t
+    per_side = 1 if points_per_cell == 1 else 3
+    diffuse = bool(radio.solver_config.diffuse_reflection)
     tau0 = np.linalg.norm(centres_xyz - tx, axis=-1) / SPEED_OF_LIGHT
-    ref, pooled = _centre_and_pooled_layers(paths, tau0, codebook, points_per_cell)
+    parts, s = [], 0.0
+    step = CONVERGED_CELLS_PER_TRACE if diffuse else len(centres_xyz)
+    for lo in range(0, len(centres_xyz), step):
+        cells = slice(lo, lo + step)
+        points = centres_xyz[cells] if per_side == 1 else _cell_points(centres_xyz[cells], per_side)
+        t = time.perf_counter()
+        with _samples(radio, samples, diffuse_reflection=False):
+            paths = radio.trace(tx[None], ori[None], points, deterministic=False)
+        if diffuse:
+            with _samples(radio, diffuse_samples):
+                paths = merged_paths(paths, radio.trace(tx[None], ori[None], points))
+        s += time.perf_counter() - t
+        parts.append(_centre_and_pooled_layers(paths, tau0[cells], codebook, points_per_cell))
+        del paths
+    ref, pooled = ({k: np.concatenate([p[i][k] for p in parts]) for k in parts[0][i]} for i in (0, 1))
     out = {"samples_per_src": int(samples), "generator": "default (non-deterministic)", "cells": int(len(centres_xyz)),
-           "points_per_cell": points_per_cell, "s": round(s, 1)}
+           "points_per_cell": points_per_cell, "s": round(s, 1),
+           "diffuse_samples_per_src": int(diffuse_samples) if diffuse else None}
     out.update(reached_by_pathsolver=int(ref["has_path"].sum()),
                covered_of_reached_pct=_covered_of_reached_pct(fast_at["has_path"], ref["has_path"]),
                errors_vs_centre=_compare(fast_at, ref))
@@ -1389,8 +1413,10 @@ def _converged_reference_lines(results: dict) -> list[str]:
     lines = _set_section(
         results, "against_converged_reference", "Against a converged PathSolver reference",
         f"A random subset of the sampled cells, traced with {CONVERGED_REFERENCE_SAMPLES:.0e} "
-        "samples (Sionna's default candidate generator), where PathSolver's reflection-diffraction chains have "
-        "converged; the one-pass cell layers against their centres (a centre differs from its cell's mean where a "
+        "samples (Sionna's default candidate generator), where most of PathSolver's reflection-diffraction chains "
+        "have converged (not all: docs/ckm-one-pass.md, sessions 15 and 34) (with diffuse reflection, its diffuse paths from a deterministic run at "
+        f"{CONVERGED_DIFFUSE_SAMPLES:.0e} samples); the one-pass cell layers against their centres (a centre differs "
+        "from its cell's mean where a "
         "shadow edge crosses the cell: these errors bound the one-pass's from above). The main reference's figures "
         "for the same set are in the tables above.", columns,
         lambda c: row(c, c["errors_vs_centre"], c["reached_by_pathsolver"], c["covered_of_reached_pct"]))

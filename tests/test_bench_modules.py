@@ -690,6 +690,73 @@ def test_merged_reference_takes_diffuse_paths_from_one_run_and_the_rest_from_the
     assert m.vertices_m is None and m.los[0, 0].sum() == 1
 
 
+def test_converged_reference_with_diffuse_reflection_merges_a_deterministic_diffuse_run(monkeypatch):
+    """ckm_solver.against_converged_reference with diffuse reflection on: per part of
+    CONVERGED_CELLS_PER_TRACE cells, every path without a diffuse reflection from a default-generator
+    run at the converged samples with diffuse reflection off, the diffuse paths from a deterministic
+    run at the diffuse samples (PathSolver's diffuse paths grow with its samples: 1e8 would not fit);
+    each cell traced once per run and its layers in the cells' order. A stub PathSolver whose paths
+    say which run made them: the reference gains are exactly R (off run) + S (diffuse run) per cell."""
+    from dataclasses import dataclass, replace
+
+    from benchmarks import ckm_solver as cs
+    from simart_pipeline.radio.tracer import TracedPaths
+    from simart_pipeline.vocabulary import InteractionKind as K
+
+    @dataclass(frozen=True)
+    class Config:
+        samples_per_src: int
+        diffuse_reflection: bool
+
+        def model_copy(self, update):
+            return replace(self, **update)
+
+    centres = np.array([[10.0 * i, 0.0, 1.5] for i in range(5)])
+    calls = []
+
+    class Radio:
+        solver_config = Config(10, True)
+
+        def trace(self, tx, ori, points, deterministic=True):
+            cfg = self.solver_config
+            calls.append((cfg.samples_per_src, cfg.diffuse_reflection, deterministic, points[:, 0].tolist()))
+            rx = (points[:, 0] / 10.0).round().astype(int)  # the cell each point is
+            # every run finds the specular path; its amplitude says which run (a wrong merge shows)
+            amp_r = 1e-4 * (rx + 1) * (2.0 if cfg.diffuse_reflection else 1.0)
+            kinds = [[int(K.SPECULAR)]] + ([[int(K.DIFFUSE)]] if cfg.diffuse_reflection else [])
+            amp = np.stack([amp_r] + ([3e-5 * (rx + 1)] if cfg.diffuse_reflection else []), -1)
+            n, p = amp.shape
+            z = np.zeros((n, 1, p), np.float32)
+            return TracedPaths(a=amp.astype(np.complex64).reshape(n, 1, 1, 1, p),
+                               tau_s=np.tile(np.arange(1, p + 1, dtype=float) * 1e-7, (n, 1, 1)),
+                               theta_t=z + 1.0, phi_t=z, theta_r=z + 1.0, phi_r=z, doppler_hz=z,
+                               interaction=np.tile(np.array(kinds, np.uint8).T[None, None], (n, 1, 1, 1)),
+                               valid=np.ones((n, 1, p), bool))
+
+    monkeypatch.setattr(cs, "CONVERGED_CELLS_PER_TRACE", 2)
+    codebook = np.ones((1, 1), np.complex64)
+    fast = {"has_path": np.ones(5, bool), "path_gain_db": np.zeros(5), "toa_s": np.zeros(5),
+            "rms_delay_spread_s": np.zeros(5), "los": np.zeros(5, bool), "best_beam": np.zeros(5, int),
+            "beam_gain_db": np.zeros((5, 1)), **{k: np.zeros(5) for k in cs.SPREADS}}
+    radio = Radio()
+    out = cs.against_converged_reference(radio, np.zeros(3), np.zeros(3), centres, fast, codebook,
+                                         samples=1000, diffuse_samples=100)
+    assert radio.solver_config == Config(10, True)  # restored
+    assert [c[:3] for c in calls] == [(1000, False, False), (100, True, True)] * 3
+    assert [c[3] for c in calls[::2]] == [[0.0, 10.0], [20.0, 30.0], [40.0]]
+    assert [c[3] for c in calls[1::2]] == [c[3] for c in calls[::2]]
+    want_db = 10 * np.log10((1e-4 * np.arange(1, 6)) ** 2 + (3e-5 * np.arange(1, 6)) ** 2)
+    np.testing.assert_allclose(out["errors_vs_centre"]["path_gain_db"]["p50"], np.median(np.abs(want_db)), rtol=1e-4)
+    assert out["diffuse_samples_per_src"] == 100 and out["reached_by_pathsolver"] == 5
+    # diffuse reflection off (the diffraction set): one default-generator run of every cell
+    calls.clear()
+    radio.solver_config = Config(10, False)
+    out = cs.against_converged_reference(radio, np.zeros(3), np.zeros(3), centres, fast, codebook, samples=1000)
+    assert [c[:3] for c in calls] == [(1000, False, False)] and out["diffuse_samples_per_src"] is None
+    np.testing.assert_allclose(out["errors_vs_centre"]["path_gain_db"]["p95"],
+                               np.percentile(np.abs(20 * np.log10(1e-4 * np.arange(1, 6))), 95), rtol=1e-4)
+
+
 def test_equal_error_front_finds_the_fewest_one_pass_rays_at_radio_map_solvers_error():
     """ckm_solver.equal_error_front, known answer: both solvers' maps are their reference plus a
     fixed noise pattern of standard deviation c / sqrt(rays) (c = 1 for the one-pass, 2 for
