@@ -44,7 +44,8 @@ Per scene and set:
   (:func:`reference_check`: gains and best beams against both references), and
   the centres of a random subset of the compared cells at :data:`CONVERGED_REFERENCE_SAMPLES`
   (:func:`against_converged_reference`: the errors against a reference whose reflection-diffraction
-  chains have converged; ``--converged-points 9``: at 3 x 3 points per cell, 9x the time);
+  chains have converged further; with diffuse reflection its diffuse paths from a deterministic run
+  at :data:`CONVERGED_DIFFUSE_SAMPLES`; ``--converged-points 9``: at 3 x 3 points per cell, 9x the time);
 - **speed**: the one-pass time for the whole grid (warm: kernels compiled), one PathSolver call per
   cell (timed on random outdoor cells, at most :data:`LOOP_CELLS` calls or :data:`LOOP_BUDGET_S`
   seconds, and extrapolated to the grid's cells with outdoor area, which the reference mode would
