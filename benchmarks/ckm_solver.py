@@ -221,7 +221,7 @@ CONVERGED_REFERENCE_SAMPLES = 10**8
 # surface: 1e8 samples would hold ten times 1e7's paths per receiver, up to 250,000 on the canyon,
 # every antenna pair), every other path of a default-generator run at CONVERGED_REFERENCE_SAMPLES
 # with diffuse reflection off. Munich, 20 cells of the every-mechanism set at their centres: the
-# 1e6 reference is 13.1 dB p95 from this one and picks another best beam in 21 % of them; 35 s per
+# 1e6 reference is 13.1 dB p95 from this one and picks another best beam in 21 % of them; 28 s per
 # receiver (docs/ckm-one-pass.md, "Session 34"). Traced CONVERGED_CELLS_PER_TRACE cells at a time.
 CONVERGED_DIFFUSE_SAMPLES = 10**7
 CONVERGED_CELLS_PER_TRACE = 2
@@ -1415,9 +1415,9 @@ def _converged_reference_lines(results: dict) -> list[str]:
         results, "against_converged_reference", "Against a converged PathSolver reference",
         f"A random subset of the sampled cells, traced with {CONVERGED_REFERENCE_SAMPLES:.0e} "
         "samples (Sionna's default candidate generator), where most of PathSolver's reflection-diffraction chains "
-        "have converged (not all: docs/ckm-one-pass.md, sessions 15 and 34) (with diffuse reflection, its diffuse paths from a deterministic run at "
-        f"{CONVERGED_DIFFUSE_SAMPLES:.0e} samples); the one-pass cell layers against their centres (a centre differs "
-        "from its cell's mean where a "
+        "have converged (not all: docs/ckm-one-pass.md, sessions 15 and 34); with diffuse reflection its diffuse "
+        f"paths come from a deterministic run at {CONVERGED_DIFFUSE_SAMPLES:.0e} samples. The one-pass cell layers "
+        "against their centres (a centre differs from its cell's mean where a "
         "shadow edge crosses the cell: these errors bound the one-pass's from above). The main reference's figures "
         "for the same set are in the tables above.", columns,
         lambda c: row(c, c["errors_vs_centre"], c["reached_by_pathsolver"], c["covered_of_reached_pct"]))
