@@ -220,9 +220,10 @@ CONVERGED_REFERENCE_SAMPLES = 10**8
 # of a deterministic run at CONVERGED_DIFFUSE_SAMPLES (PathSolver makes one per sampled hit on a lit
 # surface: 1e8 samples would hold ten times 1e7's paths per receiver, up to 250,000 on the canyon,
 # every antenna pair), every other path of a default-generator run at CONVERGED_REFERENCE_SAMPLES
-# with diffuse reflection off. Munich, 20 cells of the every-mechanism set at their centres: the
-# 1e6 reference is 13.1 dB p95 from this one and picks another best beam in 21 % of them; 28 s per
-# receiver (docs/ckm-one-pass.md, "Session 34"). Traced CONVERGED_CELLS_PER_TRACE cells at a time.
+# with diffuse reflection off. Munich, 40 cells of the every-mechanism set at their centres: the
+# 1e6 reference is 21.2 dB p95 from this one and picks another best beam in 26 % of them; 28 s per
+# receiver. Below -110 dB it is still a few heavy-tailed samples (docs/ckm-one-pass.md, "Session
+# 34"). Traced CONVERGED_CELLS_PER_TRACE cells at a time.
 CONVERGED_DIFFUSE_SAMPLES = 10**7
 CONVERGED_CELLS_PER_TRACE = 2
 # The estimator's own convergence, apart from PathSolver's: the one-pass map against the same
