@@ -639,6 +639,32 @@ class PathPowers:
 REFERENCE_CELLS_PER_TRACE = 8
 
 
+def _layers_in_parts(tx, centres, codebook, per_side: int, cells_per_trace: int, trace,
+                     keep=None) -> tuple[dict, dict, float, list]:
+    """``trace(points)`` (PathSolver paths) at n x n points in each cell (``n = per_side``, odd;
+    1: the centres), ``cells_per_trace`` cells at a time, each part reduced to its layers as it
+    comes (a part's paths, every antenna pair, can take GBs): (centre layers, pooled n x n layers,
+    trace seconds, ``keep(paths)`` of each part)."""
+    tau0 = np.linalg.norm(centres - tx, axis=-1) / SPEED_OF_LIGHT
+    centre_parts, pooled_parts, kept, trace_s = [], [], [], 0.0
+    for lo in range(0, len(centres), cells_per_trace):
+        part = slice(lo, lo + cells_per_trace)
+        t = time.perf_counter()
+        paths = trace(_cell_points(centres[part], per_side))
+        trace_s += time.perf_counter() - t
+        at_centre, pooled = _centre_and_pooled_layers(paths, tau0[part], codebook, per_side * per_side)
+        centre_parts.append(at_centre)
+        pooled_parts.append(pooled)
+        if keep is not None:
+            kept.append(keep(paths))
+        del paths
+
+    def cat(parts):
+        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+    return cat(centre_parts), cat(pooled_parts), trace_s, kept
+
+
 def _pathsolver_reference(radio, tx, ori, centres, codebook, per_side: int = 3,
                           non_diffuse_samples: int | None = None) -> tuple[dict, dict, float, PathPowers]:
     """PathSolver at n x n points in each cell (``n = per_side``; the middle one its centre):
@@ -646,28 +672,16 @@ def _pathsolver_reference(radio, tx, ori, centres, codebook, per_side: int = 3,
     :class:`PathPowers`). ``non_diffuse_samples`` (diffuse reflection on): the paths without a
     diffuse reflection from a second run at these samples with it off (:func:`merged_paths`).
     Traced :data:`REFERENCE_CELLS_PER_TRACE` cells at a time, each part reduced to its layers."""
-    tau0 = np.linalg.norm(centres - tx, axis=-1) / SPEED_OF_LIGHT
-    pool = per_side * per_side
-    centre_parts, pooled_parts, powers, trace_s = [], [], [], 0.0
-    for lo in range(0, len(centres), REFERENCE_CELLS_PER_TRACE):
-        part = slice(lo, lo + REFERENCE_CELLS_PER_TRACE)
-        points = _cell_points(centres[part], per_side)
-        t = time.perf_counter()
-        p_points = radio.trace(tx[None], ori[None], points)
+    def trace(points):
+        paths = radio.trace(tx[None], ori[None], points)
         if non_diffuse_samples is not None and radio.solver_config.diffuse_reflection:
             with _samples(radio, non_diffuse_samples, diffuse_reflection=False):
-                p_points = merged_paths(radio.trace(tx[None], ori[None], points), p_points)
-        trace_s += time.perf_counter() - t
-        at_centre, pooled = _centre_and_pooled_layers(p_points, tau0[part], codebook, pool)
-        centre_parts.append(at_centre)
-        pooled_parts.append(pooled)
-        powers.append(PathPowers.of(p_points))
-        del p_points
+                paths = merged_paths(radio.trace(tx[None], ori[None], points), paths)
+        return paths
 
-    def cat(parts):
-        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-
-    return cat(centre_parts), cat(pooled_parts), trace_s / (len(centres) * pool), PathPowers.concat(powers)
+    at_centre, pooled, trace_s, powers = _layers_in_parts(tx, centres, codebook, per_side, REFERENCE_CELLS_PER_TRACE,
+                                                          trace, PathPowers.of)
+    return at_centre, pooled, trace_s / (len(centres) * per_side * per_side), PathPowers.concat(powers)
 
 
 def _centre_and_pooled_layers(paths, tau0_s: np.ndarray, codebook, pool: int) -> tuple[dict, dict]:
@@ -729,24 +743,18 @@ def against_converged_reference(radio, tx, ori, centres_xyz: np.ndarray, fast_at
     :data:`CONVERGED_CELLS_PER_TRACE` cells at a time."""
     if points_per_cell not in (1, 9):
         raise ValueError(f"points_per_cell must be 1 or 9, got {points_per_cell}")
-    per_side = 1 if points_per_cell == 1 else 3
     diffuse = bool(radio.solver_config.diffuse_reflection)
-    tau0 = np.linalg.norm(centres_xyz - tx, axis=-1) / SPEED_OF_LIGHT
-    parts, s = [], 0.0
-    step = CONVERGED_CELLS_PER_TRACE if diffuse else len(centres_xyz)
-    for lo in range(0, len(centres_xyz), step):
-        cells = slice(lo, lo + step)
-        points = centres_xyz[cells] if per_side == 1 else _cell_points(centres_xyz[cells], per_side)
-        t = time.perf_counter()
+
+    def trace(points):
         with _samples(radio, samples, diffuse_reflection=False):
             paths = radio.trace(tx[None], ori[None], points, deterministic=False)
         if diffuse:
             with _samples(radio, diffuse_samples):
                 paths = merged_paths(paths, radio.trace(tx[None], ori[None], points))
-        s += time.perf_counter() - t
-        parts.append(_centre_and_pooled_layers(paths, tau0[cells], codebook, points_per_cell))
-        del paths
-    ref, pooled = ({k: np.concatenate([p[i][k] for p in parts]) for k in parts[0][i]} for i in (0, 1))
+        return paths
+
+    ref, pooled, s, _ = _layers_in_parts(tx, centres_xyz, codebook, 1 if points_per_cell == 1 else 3,
+                                         CONVERGED_CELLS_PER_TRACE if diffuse else len(centres_xyz), trace)
     out = {"samples_per_src": int(samples), "generator": "default (non-deterministic)", "cells": int(len(centres_xyz)),
            "points_per_cell": points_per_cell, "s": round(s, 1),
            "diffuse_samples_per_src": int(diffuse_samples) if diffuse else None}
