@@ -960,6 +960,8 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
 
     def one_pass(n, rx_polarization="V", **kw):
         kw.setdefault("diffraction_resample_factor", cfg.ckm.diffraction_resample_factor)  # the config's default
+        kw.setdefault("diffuse_gather", cfg.ckm.diffuse_gather if sizes.get("diffuse_gather") is None
+                      else sizes["diffuse_gather"])
         return lambda: op.one_pass_moments(radio, tx, ori, x, y, [HEIGHT_M], n, MAX_DEPTH, codebook=codebook,
                                            rx_polarization=rx_polarization, solids=solids,
                                            cell_outdoor_fraction=frac, **switches, **kw)
@@ -1096,8 +1098,9 @@ def grid_axes(spec: dict) -> tuple[np.ndarray, np.ndarray]:
 def run_scene(name: str, spec: dict, num_rays: int, sets, quick: bool, seed: int, ray_counts=RAY_COUNTS,
               log=print, converged_points: int = 1, cells: dict | None = None,
               converged_cells: int | None = None, converged_map: bool = True,
-              points_per_side: dict | None = None) -> dict:
-    """Every mechanism set of ``sets`` on one scene; a set's sizes from :data:`COMPARE_CELLS`,
+              points_per_side: dict | None = None, diffuse_gather: bool | None = None) -> dict:
+    """Every mechanism set of ``sets`` on one scene (``diffuse_gather``: the one-pass's
+    ``diffuse_gather``, None: the config's ``ckm.diffuse_gather``); a set's sizes from :data:`COMPARE_CELLS`,
     :data:`LOOP_CELLS`, :data:`LOOP_BUDGET_S` (``quick`` picks the first of each pair), or ``cells``
     {set: compared cells} and ``converged_cells`` where given (:func:`sizes_of_run`)."""
     x, y = grid_axes(spec)
@@ -1124,7 +1127,8 @@ def run_scene(name: str, spec: dict, num_rays: int, sets, quick: bool, seed: int
                      "converged_reference_cells": n_converged,
                      "converged_reference_points": converged_points,
                      "repeats": WARM_REPEATS if s == "los_specular" else (0 if quick else 1),
-                     "points_per_side": (points_per_side or {}).get(s, REFERENCE_POINTS_PER_SIDE[s])}
+                     "points_per_side": (points_per_side or {}).get(s, REFERENCE_POINTS_PER_SIDE[s]),
+                     "diffuse_gather": diffuse_gather}
             out["sets"][s] = run_set(name, s, xml, spec, num_rays, order, sizes, ray_counts, sample)
             out["sets"][s]["wall_s"] = round(time.perf_counter() - t0, 1)
             _release_memory()
@@ -1638,6 +1642,8 @@ def parse_args(argv=None) -> tuple[argparse.Namespace, dict[str, int]]:
     ap.add_argument("--points-per-side", nargs="+", default=[], metavar="SET=N",
                     help="the reference's n x n points per sampled cell of a set instead of "
                          "REFERENCE_POINTS_PER_SIDE's (e.g. all=5, to judge near-tie beams)")
+    ap.add_argument("--diffuse-gather", choices=("on", "off"), default=None,
+                    help="the one-pass's diffuse gather on few-hit cells (default: the config's ckm.diffuse_gather)")
     ap.add_argument("--no-converged-map", action="store_true",
                     help="skip the one-pass map at CONVERGED_SAMPLES_FACTOR times the samples")
     args = ap.parse_args(argv)
@@ -1667,6 +1673,7 @@ def main(argv=None) -> int:
                             "variant": variant, "seed": args.seed, "ray_counts": list(ray_counts),
                             "converged_reference_points_per_cell": args.converged_points,
                             "points_per_side": args.points_per_side,
+                            "diffuse_gather": args.diffuse_gather,
                             "sweep_sets": {k: list(SWEEP_SETS[k]) for k in args.sets if k in SWEEP_SETS},
                             "max_point_s": MAX_POINT_S,
                             "scattering_coefficient_all": ALL_SCATTERING_COEFFICIENT,
@@ -1680,7 +1687,9 @@ def main(argv=None) -> int:
                                             ray_counts, converged_points=args.converged_points, cells=cells,
                                             converged_cells=args.converged_cells,
                                             converged_map=not args.no_converged_map,
-                                            points_per_side=args.points_per_side)
+                                            points_per_side=args.points_per_side,
+                                            diffuse_gather=None if args.diffuse_gather is None
+                                            else args.diffuse_gather == "on")
         print(json.dumps({name: results["scenes"][name]}, indent=1), flush=True)
     results["settings"]["total_s"] = round(time.perf_counter() - t0, 1)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -536,6 +536,11 @@ def test_bench_runs_ckm_solver_with_fewer_cells_and_no_convergence_diagnostics()
     # the reference's points per cell of a set, for this run only
     points, _ = ckm_solver.parse_args(["--out", "x", "--points-per-side", "all=5"])
     assert points.points_per_side == {"all": 5} and defaults.points_per_side == {}
+    # the diffuse gather: the config's by default, on or off for this run
+    gather, _ = ckm_solver.parse_args(["--out", "x", "--diffuse-gather", "on"])
+    assert defaults.diffuse_gather is None and gather.diffuse_gather == "on"
+    with pytest.raises(SystemExit):
+        ckm_solver.parse_args(["--out", "x", "--diffuse-gather", "yes"])
 
 
 def test_rerun_alternates_baseline_and_this_commit_and_the_bench_asks_for_it(tmp_path, monkeypatch):

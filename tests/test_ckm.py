@@ -322,26 +322,28 @@ def test_the_config_asks_for_the_lattice_second_pass_and_the_tile_says_what_it_d
 
 def test_the_config_sets_the_fast_modes_ray_batch_and_the_layers_do_not_depend_on_it(tiny_built, tiny_scene,
                                                                                      monkeypatch):
-    """ckm.batch_rays (memory) and ckm.diffuse_connections reach the one-pass solver through the
-    tile (null: the solver's own default), and the tile's layers are those of one batch: hit counts
-    and masks equal, values to float64 summation order (the tiny scene's ray tracing has no diffuse
-    reflection, so the connections change nothing)."""
+    """ckm.batch_rays (memory), ckm.diffuse_connections and ckm.diffuse_gather reach the one-pass
+    solver through the tile (null: the solver's own default), and the tile's layers are those of
+    one batch: hit counts and masks equal, values to float64 summation order (the tiny scene's ray
+    tracing has no diffuse reflection, so the connections and the gather change nothing)."""
     from simart_pipeline.ckm import one_pass as op
 
     _, geom, _, out = tiny_built
     seen = []
     solve = op.one_pass_moments
     monkeypatch.setattr(op, "one_pass_moments", lambda *a, **k: seen.append(
-        (k["batch_rays"], k["diffuse_connections"])) or solve(*a, **k))
+        (k["batch_rays"], k["diffuse_connections"], k["diffuse_gather"])) or solve(*a, **k))
 
-    def fast(batch, connections=0.0):
+    def fast(batch, connections=0.0, gather=False):
         return _cfg(tiny_scene, lambda raw: raw["ckm"].update(tiles=[1, 1], cell_size_m=2.0, mode="fast",
                                                               num_rays=50_000, batch_rays=batch,
-                                                              diffuse_connections=connections))
+                                                              diffuse_connections=connections,
+                                                              diffuse_gather=gather))
 
     radio = RadioScene.from_config(meshes.radio_scene_file(out), fast(None))
-    one, many = tile_layers(radio, fast(None), geom, "r0c0"), tile_layers(radio, fast(7_001, 2.0), geom, "r0c0")
-    assert set(seen) == {(None, 0.0), (7_001, 2.0)}
+    one = tile_layers(radio, fast(None), geom, "r0c0")
+    many = tile_layers(radio, fast(7_001, 2.0, True), geom, "r0c0")
+    assert set(seen) == {(None, 0.0, False), (7_001, 2.0, True)}
     for name in ("has_path", "enough_hits", "count"):
         np.testing.assert_array_equal(many[name].values, one[name].values, err_msg=name)
     for name in ("path_gain_db", "rms_delay_spread_s", "toa_s"):
@@ -351,6 +353,7 @@ def test_the_config_sets_the_fast_modes_ray_batch_and_the_layers_do_not_depend_o
     from simart_pipeline.config.ckm import Ckm
 
     assert Ckm().diffuse_connections == op.DEFAULT_DIFFUSE_CONNECTIONS  # the front's choice, in both places
+    assert Ckm().diffuse_gather is False  # off unless asked for, as the solver's own default
     with pytest.raises(ValueError, match="diffuse_connections"):
         _cfg(tiny_scene, lambda raw: raw["ckm"].update(diffuse_connections=-1))
 

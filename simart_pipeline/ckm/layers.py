@@ -150,7 +150,7 @@ def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, t
             max_footprint_cells=cfg.ckm.max_footprint_cells, cell_size_m=cfg.ckm.cell_size_m,
             diffraction_resample_factor=cfg.ckm.diffraction_resample_factor,
             lattice_resample_factor=cfg.ckm.lattice_resample_factor,
-            diffuse_connections=cfg.ckm.diffuse_connections,
+            diffuse_connections=cfg.ckm.diffuse_connections, diffuse_gather=cfg.ckm.diffuse_gather,
             indoor=grid.inside_building | grid.outside_region[None], solids=solids, cell_outdoor_fraction=frac,
             # as the reference mode's receiver: its polarisation, not the whole field
             rx_polarization=rx.polarization if rx.pattern == "iso" else None,

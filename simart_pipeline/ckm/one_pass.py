@@ -95,7 +95,9 @@ import pandas as pd
 
 from simart_pipeline.ckm.moments import CellMoments, layers_from_moments, too_few_for_power
 from simart_pipeline.ckm.diffraction import STRETCHES_PER_PAIR
-from simart_pipeline.ckm.outdoor import outdoor_fraction
+from simart_pipeline.ckm.gather import (DEFAULT_GATHER_BELOW_EFFECTIVE_HITS, DEFAULT_GATHER_DIRECTIONS_PER_POINT,
+                                        DEFAULT_PHOTON_RAY_SHARE)
+from simart_pipeline.ckm.outdoor import outdoor_fraction, radio_solids
 from simart_pipeline.ckm.shoot_bounce import (DIRECTION_QUANTUM, NOT_A_BIN, Q_BITS, Q_OFFSET, TAGS, Grid,
                                               LatticeBins, Tracer, grid_from_centres)
 from simart_pipeline.link.beams import rotation_local_to_world
@@ -154,6 +156,7 @@ class OnePassMoments(CellMoments):
     num_rays: int = 0                 # rays of the pass (0: a merge of passes)
     second_pass: dict | None = None   # the diffraction second pass on undersampled cells (one_pass_moments)
     lattice_second_pass: dict | None = None  # the lattice rays' second pass on undersampled cells
+    diffuse_gather: dict | None = None  # the diffuse gather on few-hit cells (ckm/gather.py)
 
     def layers(self) -> dict[str, np.ndarray]:
         """:func:`layers_from_moments` with this run's ``min_count_for_spread`` and
@@ -199,9 +202,15 @@ class _Accumulator:
         # Kronecker codebook's: _SeparableBeamSums, made at the first deposit set)
         self.beam_groups = _GroupSums()
         self.beam_sums: _SeparableBeamSums | None = None
+        # set: the deposits tagged diffuse_last (Tracer.tag_diffuse_last) are also summed there, the
+        # part the diffuse gather replaces in few-hit cells (_gather_diffuse)
+        self.diffuse_last: _Accumulator | None = None
 
     def __call__(self, dep: dict[str, np.ndarray], line_of_sight: bool) -> None:
         m = self.m
+        if self.diffuse_last is not None and "diffuse_last" in dep and dep["diffuse_last"].any():
+            sel = dep["diffuse_last"]
+            self.diffuse_last({k: v[sel] for k, v in dep.items() if k != "diffuse_last"}, line_of_sight)
         cell = dep["cell"].astype(np.int64)
         for tag in TAGS:
             if tag in dep:
@@ -348,6 +357,11 @@ class _DeviceAccumulator(_Accumulator):
     def __call__(self, dep: dict, line_of_sight: bool) -> None:
         dr, mi = self.dr, self.mi
         add = dr.ReduceOp.Add
+        if self.diffuse_last is not None and "diffuse_last" in dep:
+            sel = dr.compress(dep["diffuse_last"])
+            if dr.width(sel):
+                self.diffuse_last({k: dr.gather(type(v), v, sel) for k, v in dep.items() if k != "diffuse_last"},
+                                  line_of_sight)
         cell = dep["cell"]
         for tag in TAGS:  # the second passes' bookkeeping stays on the host
             if tag in dep:
@@ -820,7 +834,11 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                      diffuse_connections: float = DEFAULT_DIFFUSE_CONNECTIONS,
                      accumulate_on_device: bool | None = None,
                      cell_outdoor_fraction: np.ndarray | None = None, lattice_resample_factor: int = 1,
-                     lattice_bin_rays: int = DEFAULT_LATTICE_BIN_RAYS) -> OnePassMoments:
+                     lattice_bin_rays: int = DEFAULT_LATTICE_BIN_RAYS, diffuse_gather: bool = False,
+                     gather_below_effective_hits: float = DEFAULT_GATHER_BELOW_EFFECTIVE_HITS,
+                     gather_photon_share: float = DEFAULT_PHOTON_RAY_SHARE,
+                     gather_directions_per_point: int = DEFAULT_GATHER_DIRECTIONS_PER_POINT,
+                     gather_radius_m: float | None = None) -> OnePassMoments:
     """Per-cell power moments of one transmitter over a grid, from one shoot-and-bounce pass.
 
     :param radio: :class:`simart_pipeline.radio.tracer.RadioScene` (mesh, materials of its
@@ -891,6 +909,14 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         joined to by a shadow ray, on average (next-event estimation weighted with the scattered
         ray by the balance heuristic, :meth:`simart_pipeline.ckm.shoot_bounce.Tracer._connect`);
         0: the scattered ray alone
+    :param diffuse_gather: with ``diffuse_reflection``, estimate the last diffuse reflection again
+        from the cells whose effective count (Kish) stays below ``gather_below_effective_hits``
+        (or that no ray reached), by final gathering from photons (:mod:`simart_pipeline.ckm.gather`):
+        ``gather_directions_per_point`` gather rays from each of a cell's outdoor sample points, a
+        photon pass of ``gather_photon_share x num_rays`` rays, a disc kernel of
+        ``gather_radius_m`` (None: one cell size); in those cells it replaces the main pass's
+        deposits whose last interaction was a lattice ray's diffuse reflection. ``diffuse_gather``
+        of the result says what it did
     :param accumulate_on_device: sum the deposits on the Dr.Jit device (:class:`_DeviceAccumulator`)
         instead of on the host with numpy (:class:`_Accumulator`); None: on the device where the
         variant is ``cuda`` (a GPU), on the host otherwise (bitwise repeatable; on two CPU cores
@@ -958,6 +984,10 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         raise ValueError(f"lattice_resample_factor must be >= 1, got {lattice_resample_factor}")
     if lattice_factor > 1:  # the lattice rays' deposits tagged with their bin, for the second pass
         tracer.lattice_bins = LatticeBins(int(num_rays), int(lattice_bin_rays))
+    gathering = bool(diffuse_gather) and diffuse_reflection and depth > 0
+    if gathering:  # the part the gather replaces, summed apart as well
+        tracer.tag_diffuse_last = True
+        acc.diffuse_last = accumulator(grid, tx_position_m, codebook, ant, rot, radio.wavelength_m)
     wedges = None
     with _sink(acc) as sink:
         for start in range(0, int(num_rays), int(batch_rays)):
@@ -986,6 +1016,14 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
             acc, tracer, lattice_factor, masked.ravel(), frac.ravel(), int(min_hits_for_power),
             max(float(min_effective_hits_for_power), float(min_hits_for_power)), int(batch_rays),
             lambda: accumulator(grid, tx_position_m, codebook, ant, rot, radio.wavelength_m))
+    gather = None
+    if gathering:
+        tracer.tag_diffuse_last = False
+        gather = _gather_diffuse(
+            acc, radio, tracer, grid, masked.ravel(), frac.ravel(), float(gather_below_effective_hits),
+            solids, int(max(1, round(float(gather_photon_share) * int(num_rays)))), int(batch_rays),
+            int(gather_directions_per_point), gather_radius_m,
+            lambda: accumulator(grid, tx_position_m, codebook, ant, rot, radio.wavelength_m))
     m = acc.moments()
     scale = np.where(masked, 0.0, 1.0 / np.maximum(frac, 1e-12))
     for f in ("power", "los_power", "p_excess_delay_s", "p_excess_delay2_s2"):
@@ -1001,7 +1039,8 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                           min_count_for_power=int(min_hits_for_power),
                           min_effective_count_for_power=float(min_effective_hits_for_power),
                           outdoor_fraction=frac, masked=masked,
-                          num_rays=int(num_rays), second_pass=second_pass, lattice_second_pass=lattice_pass)
+                          num_rays=int(num_rays), second_pass=second_pass, lattice_second_pass=lattice_pass,
+                          diffuse_gather=gather)
 
 
 def default_batch_rays(variant: str) -> int:
@@ -1043,6 +1082,66 @@ def _resample_undersampled(acc: _Accumulator, wedges, factor: int, masked, frac,
         out["new_samples"] = wedges.resample(stretches, factor, batch, replay_sink, finer_sink)
     acc.replace(cells, replay.summed(), finer.summed())
     out["still_undersampled"] = int(len(_undersampled_cells(acc, masked, frac, min_hits, min_effective)))
+    return out
+
+
+def _gather_diffuse(acc: _Accumulator, radio, tracer: Tracer, grid, masked, frac, below: float, solids,
+                    photon_rays: int, batch: int, directions_per_point: int, radius_m, new_accumulator) -> dict:
+    """The diffuse gather of ``one_pass_moments(diffuse_gather=True)``: the cells outside the mask
+    that no ray reached or whose effective count stays below ``below``, their last diffuse
+    reflection gathered (:func:`simart_pipeline.ckm.gather.diffuse_gather`) and put in place of the
+    main pass's deposits tagged ``diffuse_last`` there. Returns what it did."""
+    from simart_pipeline.ckm.gather import diffuse_gather
+
+    m = acc.summed()
+    effective = np.where(m.power_sq > 0, m.power**2 / np.where(m.power_sq > 0, m.power_sq, 1.0), 0.0)
+    # every few-hit cell, whatever makes its few hits: in Munich's far cells the rays' few large
+    # deposits are specular or diffracted and the diffuse power from the walls beside the cell is
+    # what they miss (taking only cells whose diffuse-last deposits make the noise, as the lattice's
+    # second pass does, left Munich's map as without the gather; docs/ckm-one-pass.md "Session 35")
+    cells = np.flatnonzero(~masked & (frac > 0) & (effective < below))
+    if solids is None:
+        solids = radio_solids(radio)
+    gathered = new_accumulator()
+    with _sink(gathered) as sink:
+        out, var_gather = diffuse_gather(radio, tracer, grid, cells, solids, sink, photon_rays=photon_rays,
+                                         batch_rays=batch, directions_per_point=directions_per_point,
+                                         radius_m=radius_m)
+    out["below_effective_hits"] = float(below)
+    if var_gather is None:
+        return out
+    old, new = acc.diffuse_last.summed(), gathered.summed()
+    # the two estimates of the cell's last diffuse reflection weighted by their inverse variances:
+    # the main pass's (its deposits' sum of squares) where a far scatter point lit brightly makes
+    # few gather rays carry the cell, the gather's where a few near scatter points carry the main
+    # pass's (docs/ckm-one-pass.md, "Session 35")
+    # relative variances (1 / effective count for the rays' deposits): a few deposits that missed a
+    # cell's rare large ones say little about its absolute variance, their spread still says how
+    # few carry it; no deposit at all: no estimate (weight 0)
+    rel_rays = np.where(old.power > 0, old.power_sq / np.where(old.power > 0, old.power, 1.0) ** 2, np.inf)
+    rel_gather = np.where(new.power > 0, var_gather / np.where(new.power > 0, new.power, 1.0) ** 2, np.inf)
+    with np.errstate(invalid="ignore"):
+        w_gather = np.where(np.isinf(rel_rays), np.where(np.isinf(rel_gather), 0.5, 1.0),
+                            np.where(np.isinf(rel_gather), 0.0, rel_rays / np.maximum(rel_rays + rel_gather, 1e-300)))
+    out["gather_weight_median"] = float(np.median(w_gather[cells])) if len(cells) else 0.0
+    acc.replace(cells, old, _weighted_moments(old, new, 1.0 - w_gather, w_gather, var_gather))
+    return out
+
+
+def _weighted_moments(a: CellMoments, b: CellMoments, wa: np.ndarray, wb: np.ndarray, var_b: np.ndarray) -> CellMoments:
+    """``wa a + wb b`` per cell (flat sums) for every sum linear in the deposits' powers; the sum of
+    squares as the weighted variance ``wa^2 sum p_a^2 + wb^2 var_b``; hits added; earliest delay the
+    smaller."""
+    out = CellMoments.zeros(a.power.shape, None if a.beam_power is None else a.beam_power.shape[1])
+    for f in ("power", "los_power", "p_excess_delay_s", "p_excess_delay2_s2", "p_cos", "p_sin", "beam_power"):
+        va, vb = getattr(a, f), getattr(b, f)
+        if va is None:
+            continue
+        shape = (-1,) + (1,) * (va.ndim - 1)
+        setattr(out, f, wa.reshape(shape) * va + wb.reshape(shape) * vb)
+    out.power_sq = wa**2 * a.power_sq + wb**2 * var_b
+    out.count = a.count + b.count
+    out.min_delay_s = np.minimum(a.min_delay_s, b.min_delay_s)
     return out
 
 

@@ -599,6 +599,13 @@ class Tracer:
         self.nee = None
         if self.diffuse and diffuse_connections > 0:
             self._setup_connections(float(diffuse_connections))
+        # True: every deposit says whether a lattice ray's diffuse reflection was its last
+        # interaction (``diffuse_last``: the first crossings after it and the hit's connections),
+        # the part the diffuse gather (.gather) estimates again in few-hit cells
+        self.tag_diffuse_last = False
+        # set (a .gather.PhotonRecorder): a photon pass, no deposits; every hit's diffuse part is
+        # handed to it instead (point, face, incident field, path length, departure)
+        self.photons = None
 
     def _setup_connections(self, per_hit: float) -> None:
         """The candidate cells of the diffuse hits' connections (:meth:`_connect`): every cell
@@ -764,7 +771,7 @@ class Tracer:
         if weight is not None:
             power *= weight
         cell = cell_offset + mi.UInt32(row) * g["nx_int"] + mi.UInt32(col)
-        if "dir_pdf" in take:
+        if "dir_pdf" in take and self.nee is not None:
             # the first segment after a diffuse reflection: the balance heuristic's share of the
             # scattered ray (density dir_pdf per sr, |d_z| / t^2 per m^2 of the plane) beside the
             # hit's connections to cells (Tracer._connect), which estimate the same crossings
@@ -773,6 +780,9 @@ class Tracer:
             p_conn = dr.gather(mi.Float, self.nee["cell_density"], cell)
             power *= dr.select(take["dir_pdf"] > 0, p_ray / (p_ray + p_conn), 1.0)
         out = dict(cell=cell, power=power, dist=dist)
+        if self.tag_diffuse_last:  # a lattice ray's first segment after its diffuse reflection
+            out["diffuse_last"] = ((take["dir_pdf"] > 0) if "dir_pdf" in take and "tube_c" not in take
+                                   else dr.zeros(mi.Bool, dr.width(power)))
         out.update({k: take[k] for k in TAGS if k in take})
         if "lattice_bin" in out and self.sampled:  # diffused since launch: no bin's
             out["lattice_bin"] = dr.select(take["anchor"] == 0, out["lattice_bin"], NOT_A_BIN)
@@ -1138,7 +1148,7 @@ class Tracer:
         extra, connections = {}, None
         if self.diffuse:
             p_diff = w_diff / dr.select(total > 0, total, 1.0)  # the probability of drawing diffuse
-            if self.nee is not None and sink is not None and not self.undiffused_only:
+            if (self.nee is not None or self.photons is not None) and sink is not None and not self.undiffused_only:
                 connect = hit & (w_diff > 0)
                 if self.diffuse_last_only:
                     connect &= undiffused
@@ -1148,7 +1158,8 @@ class Tracer:
             # XPD rotation from the incident (theta, phi) basis to the scattered one, magnitude
             # sqrt(W f_s / q) (Sionna: S Gamma sqrt(f_s * solid angle) / sqrt(probability))
             out = self._scattered_field(d, ko, er, ei, kx, total * w_pat)
-            if self.nee is not None:  # the scattered ray's density: its first crossings' MIS weight
+            if self.nee is not None or self.tag_diffuse_last:  # the scattered ray's density: its
+                # first crossings' MIS weight (and their mark: > 0 only on the scattered rays)
                 extra["dir_pdf"] = dr.select(diff, p_diff * q_dir, 0.0)
             new_re = dr.select(diff, out[0], new_re)
             new_im = dr.select(diff, out[1], new_im)
@@ -1192,7 +1203,10 @@ class Tracer:
             dr.eval(*pending, *connections)
             # the connections read the incoming state where it is evaluated (a gather from the
             # hits' lazy gathers would evaluate each field in a kernel of its own)
-            self._connect(st_in if split else st, *connections, depth, sink, hits if split else None)
+            if self.photons is not None:  # a photon pass: the hits recorded, no connections
+                self._record_photons(st_in if split else st, *connections, hits if split else None)
+            else:
+                self._connect(st_in if split else st, *connections, depth, sink, hits if split else None)
         if split:  # the reflected rays first, then the transmitted ones
             return _compact_pair(dr, mi, new, alive, new_t, alive_t)
         return _compact(dr, new, alive)
@@ -1276,12 +1290,40 @@ class Tracer:
         # departure grid as the scattered ray's own
         d_dep = on_departure_grid(mi.Vector3f(*(dr.dot(of_st(c), dh) for c in ("m0", "m1", "m2"))))
         out = dict(cell=dr.gather(mi.UInt32, nee["cell"], j), power=power, dist=take(length) + r_c)
+        if self.tag_diffuse_last:  # a connection ends its path with the diffuse reflection
+            out["diffuse_last"] = dr.full(mi.Bool, "tube_c" not in st, dr.width(power))
         out.update({k_: of_st(k_) for k_ in TAGS if k_ in st})
         if "lattice_bin" in out:  # a diffuse hit's connection: no bin's
             out["lattice_bin"] = dr.full(mi.UInt32, NOT_A_BIN, dr.width(power))
         out.update(direction_terms(d_c, d_dep, self.rot, self.with_beams))
         dr.eval(*out.values())
         sink(out if self.device_deposits else {k_: v_.numpy() for k_, v_ in out.items()}, False)
+
+    def _record_photons(self, st, p, n, d, d_r, w_diff, p_diff, kx, pat, length, active, st_lanes=None) -> None:
+        """A photon pass (:attr:`photons`, :mod:`.gather`): the active hits whose point the
+        recorder keeps (near a gather point), with what a connection from them needs: point,
+        face normal towards the incoming side, incoming direction and field, diffuse energy
+        ``w_diff``, XPD, pattern, path length, departure direction (on the departure grid)."""
+        dr, mi = self.dr, self.mi
+        lanes = dr.compress(active)
+        if dr.width(lanes) == 0:
+            return
+        take = lambda v: dr.gather(type(v), v, lanes)  # noqa: E731
+        ph = take(p)
+        keep = self.photons.keep(np.stack([c.numpy() for c in (ph.x, ph.y, ph.z)], -1))
+        if not keep.any():
+            return
+        lanes = dr.gather(mi.UInt32, lanes, mi.UInt32(np.flatnonzero(keep).astype(np.uint32)))
+        at = lanes if st_lanes is None else dr.gather(mi.UInt32, st_lanes, lanes)
+        of_st = lambda key: dr.gather(type(st[key]), st[key], at)  # noqa: E731
+        dh = take(d)
+        dep = on_departure_grid(mi.Vector3f(*(dr.dot(of_st(c), dh) for c in ("m0", "m1", "m2"))))
+        rec = dict(p=take(p), n=take(n), d=dh, e_re=of_st("e_re"), e_im=of_st("e_im"), dep=dep)
+        scalars = dict(w_diff=take(w_diff), kx=take(kx), pat=take(pat), length=take(length))
+        dr.eval(*rec.values(), *scalars.values())
+        out = {k: np.stack([c.numpy() for c in (v.x, v.y, v.z)], -1) for k, v in rec.items()}
+        out.update({k: v.numpy() for k, v in scalars.items()})
+        self.photons.store(out)
 
     def trace(self, start: int, stop: int, sink, **rays) -> None:
         """Trace lattice rays ``start..stop-1`` (or the rays ``rays`` name, :meth:`launch`);
@@ -1305,6 +1347,8 @@ class Tracer:
         # the maps are the same bit for bit
         trim_last = not (from_transmitter and max_depth <= 1)
         for depth in range(max_depth + 1):
+            if depth == max_depth and self.photons is not None:
+                break  # a photon pass: the last segment would only deposit
             if depth == 0 and first_hit is not None:
                 t_hit, ids, prim = first_hit
                 hit = t_hit < dr.inf
@@ -1323,7 +1367,7 @@ class Tracer:
             line_of_sight = from_transmitter and depth == 0
             if from_transmitter and depth <= 1:
                 hit_prev = self._record_lit(depth, ids, prim, hit, hit_prev if depth else None, st, t_hit)
-            if self.los or not line_of_sight:
+            if (self.los or not line_of_sight) and self.photons is None:
                 for height, cell_offset in self.heights:
                     # line of sight ends at sharp shadow edges, which a footprint would blur
                     # across; the lattice's own tubes are narrow there at useful ray counts

@@ -100,6 +100,15 @@ class Ckm(_Model):
         0.5, ge=0, le=64, description="fast mode, with diffuse reflection: cells each diffuse hit is joined to "
         "on average (a shadow ray to a point drawn uniformly among the outdoor cells, weighted with the "
         "scattered ray by multiple importance sampling); 0: the scattered ray alone")
+    # Final gathering of the last diffuse reflection in few-hit cells (ckm/gather.py): a forward
+    # estimate weighs a scatter point by 1 / r^2 from the cell, so a cell that no strong path reaches
+    # is carried by the few samples that fall near it; gathered from the cell over solid angle it is
+    # not (docs/ckm-one-pass.md "Session 35").
+    diffuse_gather: bool = Field(
+        False, description="fast mode, with diffuse reflection: in cells whose effective number of ray hits "
+        "stays below 10 (or that no ray reached), estimate the last diffuse reflection again by gathering "
+        "from the cell (photons of a second pass of a quarter of num_rays, 512 gather rays a cell) and "
+        "weigh it with the rays' estimate by their relative variances")
     adaptive_max_rays: int | None = Field(
         None, ge=1_000, description="fast mode: where more than max_undersampled_fraction of the reached "
         "cells have fewer than min_hits_for_power hits, the pass is rerun with 4x the rays while that "

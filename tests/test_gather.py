@@ -1,0 +1,146 @@
+"""The diffuse gather (``simart_pipeline.ckm.gather``, ``one_pass_moments(diffuse_gather=True)``):
+the last diffuse reflection of few-hit cells estimated from the cells by final gathering from
+photons, against Sionna's Lambertian model integrated by quadrature, its own variance estimate,
+brute-force neighbour searches, and the main pass it must leave alone where no cell is gathered."""
+
+import numpy as np
+import pytest
+
+from test_one_pass import _axes, _lambertian_ground_gain, _lambertian_ground_scene
+
+from simart_pipeline.ckm import gather as ga
+from simart_pipeline.ckm import one_pass as op
+from simart_pipeline.ckm import shoot_bounce as sb
+from simart_pipeline.ckm.outdoor import radio_solids
+
+H_TX, H_RX = 10.0, 1.5
+TX = np.array([0.0, 0.0, H_TX])
+KW = dict(los=False, specular_reflection=True, diffuse_reflection=True)
+
+
+@pytest.fixture(scope="module")
+def ground(tmp_path_factory):
+    radio = _lambertian_ground_scene(tmp_path_factory.mktemp("ground"))
+    x, y = _axes(0.0, 12, -10.0, 10, 2.0)
+    return radio, x, y, _lambertian_ground_gain(x, y, H_TX, H_RX)
+
+
+def test_gathered_lambertian_ground_is_sionnas_model_within_its_own_error(ground):
+    """A ground of S = 1 (Lambertian, no specular energy) under an iso source: the gather alone
+    (every cell, 32 directions from each of 16 points, photons of 3e5 rays) estimates Sionna's
+    scattered gain integrated by quadrature (at the cell centres; the gather is a cell mean): the
+    grid total within 2 % (measured 0.6 % low: the kernel's blur), the median cell within 2 %
+    (0.7 % low), and the cells within 4.5 of the standard deviations the gather reports for them
+    (the variance that weighs it against the rays' estimate) in 97.5 % of them (measured 119 and
+    120 of 120: a bright patch far off that one gather ray in 512 finds is a tail the reported
+    variance misses where no ray finds it). 128 directions halve the reported and the actual
+    error alike (RMS 8.7 -> 4.3 %). A flat disc kernel with the (K - 1) /
+    (pi r_K^2) estimate read 3 % low (photons from a lattice are more even than Poisson points)."""
+    radio, x, y, ref = ground
+    grid = sb.grid_from_centres(x, y, [H_RX])
+    n = 300_000
+    results = {}
+    for dirs in (32, 128):
+        tracer = sb.Tracer(radio, TX, np.eye(3), grid, n, 1, False, None, specular=True, diffuse=True)
+        got = np.zeros(grid.nx * grid.ny)
+
+        def sink(dep, los):
+            assert not los
+            got[:] += np.bincount(dep["cell"].astype(np.int64), dep["power"].astype(np.float64), len(got))
+
+        out, var = ga.diffuse_gather(radio, tracer, grid, np.arange(grid.nx * grid.ny), radio_solids(radio), sink,
+                                     photon_rays=n, batch_rays=1 << 20, directions_per_point=dirs)
+        assert out["cells"] == 120 and out["gather_points"] == 120 * 16 and out["pairs"] > 0
+        got = got.reshape(ref.shape)
+        sd = np.sqrt(var).reshape(ref.shape)
+        assert abs(got.sum() / ref.sum() - 1) < 0.02, dirs
+        assert abs(np.median(got / ref) - 1) < 0.02, dirs
+        assert (np.abs(got - ref) < 4.5 * sd).mean() >= 0.975, dirs
+        results[dirs] = (np.sqrt(np.mean((got / ref - 1) ** 2)), np.median(sd / got))
+    (rms32, sd32), (rms128, sd128) = results[32], results[128]
+    assert rms128 < 0.7 * rms32 and sd128 < 0.7 * sd32
+
+
+@pytest.mark.parametrize("connections", [0.0, 0.5])
+def test_gather_on_no_cell_leaves_the_main_pass_bit_for_bit(ground, connections):
+    """With the gather on but no cell below its effective-count threshold, the map is the main
+    pass's bit for bit (tagging the diffuse-last deposits changes no deposit)."""
+    radio, x, y, _ = ground
+    run = lambda **kw: op.one_pass_moments(radio, TX, np.zeros(3), x, y, np.array([H_RX]), 100_000, 1,  # noqa: E731
+                                           diffuse_connections=connections, **KW, **kw)
+    off, on = run(), run(diffuse_gather=True, gather_below_effective_hits=0.0)
+    assert on.diffuse_gather["cells"] == 0 and off.diffuse_gather is None
+    for f in ("power", "power_sq", "count", "min_delay_s", "p_excess_delay_s", "p_cos"):
+        np.testing.assert_array_equal(getattr(on, f), getattr(off, f), err_msg=f)
+
+
+def test_gather_and_rays_weighed_together_are_closer_to_the_model_than_the_rays(ground):
+    """Every cell gathered at 1e5 rays: the rays' and the gather's estimates of the last diffuse
+    reflection weighed by their relative variances are Sionna's model within 2 % over the grid and
+    at the median cell, and closer to it cell by cell than the rays alone (RMS relative error:
+    measured 0.049 against 0.111)."""
+    radio, x, y, ref = ground
+    run = lambda **kw: op.one_pass_moments(radio, TX, np.zeros(3), x, y, np.array([H_RX]), 100_000, 1,  # noqa: E731
+                                           **KW, **kw)
+    rays = run()
+    both = run(diffuse_gather=True, gather_below_effective_hits=np.inf)
+    assert both.diffuse_gather["cells"] == 120
+    assert abs(both.power[0].sum() / ref.sum() - 1) < 0.02
+    assert abs(np.median(both.power[0] / ref) - 1) < 0.02
+    rms = lambda m: np.sqrt(np.mean((m.power[0] / ref - 1) ** 2))  # noqa: E731
+    assert rms(both) < 0.7 * rms(rays)
+    assert (both.count >= rays.count).all()
+    # the gathered deposits are cell means too: layers as usual, spreads where there are hits
+    assert np.isfinite(both.layers()["rms_delay_spread_s"]).all()
+
+
+def test_only_deposits_whose_last_interaction_is_diffuse_are_tagged(ground, tmp_path):
+    """On the Lambertian ground at depth 1 without line of sight every deposit ends with the
+    diffuse reflection (scattered rays' first crossings and connections): all tagged. With S = 0
+    (specular only, diffuse reflection on) none is."""
+    radio, x, y, _ = ground
+    grid = sb.grid_from_centres(x, y, [H_RX])
+    for s_coef, expect in ((1.0, True), (0.0, False)):
+        radio.scene.objects["ground"].radio_material.scattering_coefficient = s_coef
+        try:
+            tracer = sb.Tracer(radio, TX, np.eye(3), grid, 20_000, 1, False, None, specular=True, diffuse=True,
+                               diffuse_connections=1.0)
+            tracer.tag_diffuse_last = True
+            flags = []
+            tracer.trace(0, 20_000, lambda dep, los: flags.append(dep["diffuse_last"]))
+            flags = np.concatenate(flags)
+            assert len(flags) > 1000 and (flags == expect).all(), s_coef
+        finally:
+            radio.scene.objects["ground"].radio_material.scattering_coefficient = 1.0
+
+
+def test_photon_recorder_and_neighbour_search_against_brute_force():
+    """The recorder keeps every photon within the radius of a gather point; the pairs are exactly
+    the photons on the gather point's face plane and side strictly inside its kernel radius, which
+    is the K-th nearest photon's distance where K lie within the radius, else the radius."""
+    rng = np.random.default_rng(3)
+    # photons on the ground (normal +z) and on a wall x = 0 (normal +x), gather points on both
+    ground = np.column_stack([rng.uniform(-20, 20, 4000), rng.uniform(-20, 20, 4000), np.zeros(4000)])
+    wall = np.column_stack([np.zeros(1500), rng.uniform(-20, 20, 1500), rng.uniform(0, 10, 1500)])
+    p = np.concatenate([ground, wall])
+    n = np.concatenate([np.tile([0.0, 0, 1], (4000, 1)), np.tile([1.0, 0, 0], (1500, 1))])
+    g = np.concatenate([ground[:60] + [0.3, 0.2, 0], wall[:40] + [0, 0.3, 0.1]])
+    gn = np.concatenate([n[:60], n[4000:4040]])
+    radius = 1.5
+    rec = ga.PhotonRecorder(g, radius)
+    d_all = np.linalg.norm(p[:, None] - g[None], axis=-1)
+    near = (d_all <= radius).any(axis=1)
+    kept = rec.keep(p)
+    assert kept[near].all() and kept.sum() < len(p)
+    photons = {"p": p, "n": n}
+    rows, cols, dists, radii = ga.gather_pairs({"x": g, "n": gn}, photons, radius, neighbours=8)
+    for j in range(len(g)):
+        d = np.sort(d_all[:, j])
+        r = d[7] if d[7] <= radius else radius
+        assert radii[j] == pytest.approx(r)
+        same = (n @ gn[j] > ga.SAME_SIDE_COS) & (np.abs((p - g[j]) @ gn[j]) < ga.PLANE_TOLERANCE_M)
+        expect = np.flatnonzero(same & (d_all[:, j] < r - 1e-12))
+        got = np.sort(cols[rows == j])
+        np.testing.assert_array_equal(got, expect)
+        np.testing.assert_allclose(np.sort(dists[rows == j]), np.sort(d_all[expect, j]))
+    assert ga.epanechnikov(np.array([0.0, 1.0]), 1.0) == pytest.approx([2 / np.pi, 0.0])
