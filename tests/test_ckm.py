@@ -320,6 +320,35 @@ def test_the_config_asks_for_the_lattice_second_pass_and_the_tile_says_what_it_d
         _cfg(tiny_scene, lambda raw: raw["ckm"].update(lattice_resample_factor=0))
 
 
+def test_the_config_asks_for_the_diffuse_gather_and_the_tile_says_what_it_did(tiny_built, tiny_scene):
+    """ckm.diffuse_gather reaches the solver through the tile with diffuse reflection on (every
+    material given S = 0.3, as the benchmark's every-mechanism set): with few
+    rays the tile records each station's gather (cells, photons, pairs), the cells with enough
+    effective hits keep their gain bit for bit (the gather touches only the few-hit ones), and the
+    gathered ones get more hits."""
+    cfg, geom, _, out = tiny_built
+
+    def fast(gather):
+        def edit(raw):
+            raw["ckm"].update(tiles=[1, 1], cell_size_m=2.0, mode="fast", num_rays=20_000, diffuse_gather=gather)
+            raw.setdefault("ray_tracing", {})["diffuse_reflection"] = True
+        return _cfg(tiny_scene, edit)
+
+    radio = RadioScene.from_config(meshes.radio_scene_file(out), fast(False))
+    for obj in radio.scene.objects.values():  # the ITU materials scatter nothing (S = 0)
+        obj.radio_material.scattering_coefficient = 0.3
+    off, on = tile_layers(radio, fast(False), geom, "r0c0"), tile_layers(radio, fast(True), geom, "r0c0")
+    assert "diffuse_gather_per_bs" not in off.attrs
+    done = on.attrs["diffuse_gather_per_bs"]
+    assert len(done) == len(cfg.base_stations)
+    assert sum(p["cells"] for p in done) > 0 and sum(p["pairs"] for p in done) > 0
+    eff = off["effective_count"].values
+    kept = off["has_path"].values & (eff >= 10.0)
+    np.testing.assert_array_equal(on["path_gain_db"].values[kept], off["path_gain_db"].values[kept])
+    few = off["has_path"].values & ~kept
+    assert few.any() and (on["count"].values[few] > off["count"].values[few]).mean() > 0.5
+
+
 def test_the_config_sets_the_fast_modes_ray_batch_and_the_layers_do_not_depend_on_it(tiny_built, tiny_scene,
                                                                                      monkeypatch):
     """ckm.batch_rays (memory), ckm.diffuse_connections and ckm.diffuse_gather reach the one-pass

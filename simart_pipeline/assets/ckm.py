@@ -66,6 +66,10 @@ def ckm_layers(context: dg.AssetExecutionContext, project: ProjectResource, ray_
                 f"bs {i}: {p['cells_swapped']} of {p['undersampled_cells']} undersampled cells swapped, "
                 f"{p['new_rays']} new rays" if p else f"bs {i}: none"
                 for i, p in enumerate(ds.attrs["lattice_second_pass_per_bs"]))
+        if "diffuse_gather_per_bs" in ds.attrs:
+            meta[f"{name}_diffuse_gather"] = "; ".join(
+                f"bs {i}: {p['cells']} few-hit cells gathered, {p['photons']} photons, {p['pairs']} pairs" if p
+                else f"bs {i}: none" for i, p in enumerate(ds.attrs["diffuse_gather_per_bs"]))
     meta["compute_s"] = round(time.perf_counter() - t0, 2)
     meta["cells"] = int(grid.traced.size)
     if meta["cells_traced"]:

@@ -125,12 +125,13 @@ def reference_moments(radio, cfg: SceneConfig, points: np.ndarray, weights: np.n
 
 
 def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, tx_ant_positions_m
-                 ) -> tuple[mom.CellMoments, list[int], list[dict | None], list[dict | None]]:
+                 ) -> tuple[mom.CellMoments, list[int], list[dict | None], list[dict | None], list[dict | None]]:
     """One shoot-and-bounce pass per base station over the tile's planes (more where
     ``ckm.adaptive_max_rays`` asks): moments ``[B, H, y, x]``, the rays each station's pass used
     and what each one's second passes on undersampled cells did (None: none), the diffracted
     rays' (``ckm.diffraction_resample_factor``) and the lattice rays'
-    (``ckm.lattice_resample_factor``)."""
+    (``ckm.lattice_resample_factor``), and what each one's diffuse gather did
+    (``ckm.diffuse_gather``)."""
     from simart_pipeline.ckm.one_pass import adaptive_one_pass_moments
     from simart_pipeline.ckm.outdoor import outdoor_fraction, radio_solids
 
@@ -163,7 +164,7 @@ def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, t
         vals = [getattr(m, f) for m in per_bs]
         stacked[f] = None if vals[0] is None else np.stack(vals)
     return (mom.CellMoments(**stacked), [m.num_rays for m in per_bs], [m.second_pass for m in per_bs],
-            [m.lattice_second_pass for m in per_bs])
+            [m.lattice_second_pass for m in per_bs], [m.diffuse_gather for m in per_bs])
 
 
 def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_dir=None,
@@ -192,7 +193,7 @@ def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_
             getattr(m, f)[:, traced] = getattr(mt, f)
         coherent[:, traced] = coh
     elif n_traced:
-        m, rays_per_bs, second_pass, lattice_pass = fast_moments(radio, cfg, grid, weights, tx_ant)
+        m, rays_per_bs, second_pass, lattice_pass, gathered = fast_moments(radio, cfg, grid, weights, tx_ant)
         coherent[:] = np.nan
     tx = np.array([b.position_m for b in cfg.base_stations], np.float64)
     centre = np.stack([xx, yy, hh], -1)
@@ -221,6 +222,8 @@ def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_
             ds.attrs["second_pass_per_bs"] = second_pass
         if any(lattice_pass):  # ckm.lattice_resample_factor: what each station's lattice second pass did
             ds.attrs["lattice_second_pass_per_bs"] = lattice_pass
+        if any(gathered):  # ckm.diffuse_gather: what each station's gather did
+            ds.attrs["diffuse_gather_per_bs"] = gathered
     return ds
 
 
