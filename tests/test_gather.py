@@ -144,3 +144,29 @@ def test_photon_recorder_and_neighbour_search_against_brute_force():
         np.testing.assert_array_equal(got, expect)
         np.testing.assert_allclose(np.sort(dists[rows == j]), np.sort(d_all[expect, j]))
     assert ga.epanechnikov(np.array([0.0, 1.0]), 1.0) == pytest.approx([2 / np.pi, 0.0])
+
+
+def test_gather_rays_in_batches_give_the_same_gather(ground, monkeypatch):
+    """The gather rays are cast in batches (a city's few-hit cells can ask for tens of millions):
+    batches of 1,000 rays give the same deposits as one batch, bit for bit (each point's directions
+    are its own whatever the batch)."""
+    radio, x, y, _ = ground
+    grid = sb.grid_from_centres(x, y, [H_RX])
+    cells = np.arange(0, grid.nx * grid.ny, 7)
+
+    def gathered():
+        tracer = sb.Tracer(radio, TX, np.eye(3), grid, 50_000, 1, False, None, specular=True, diffuse=True)
+        got = np.zeros(grid.nx * grid.ny)
+        sink = lambda dep, los: got.__iadd__(np.bincount(dep["cell"].astype(np.int64),  # noqa: E731
+                                                         dep["power"].astype(np.float64), len(got)))
+        out, var = ga.diffuse_gather(radio, tracer, grid, cells, radio_solids(radio), sink, photon_rays=50_000,
+                                     batch_rays=1 << 20)
+        return got, var, out
+
+    one = gathered()
+    monkeypatch.setattr(ga, "GATHER_RAYS_PER_BATCH", 1000)
+    many = gathered()
+    assert one[2]["pairs"] > 0 and one[2] == many[2]
+    np.testing.assert_array_equal(one[0], many[0])
+    np.testing.assert_array_equal(one[1], many[1])
+    assert (one[0][cells] > 0).all() and (np.delete(one[0], cells) == 0).all()

@@ -62,6 +62,7 @@ SAME_SIDE_COS = 0.999  # and its face normal (incoming side) within 2.6 deg of t
 MAX_RECORDER_VOXELS = 1 << 26  # the photon recorder's voxel grid: 64 MB at most
 _GATHER_SEED = 0x5EED
 _PAIRS_PER_CHUNK = 1 << 22
+GATHER_RAYS_PER_BATCH = 1 << 21
 
 
 class PhotonRecorder:
@@ -119,17 +120,18 @@ def gather_origins(radio, grid, cells: np.ndarray, solids) -> tuple[np.ndarray, 
     return pts[~inside], cell_of[~inside]
 
 
-def gather_directions(num_points: int, per_point: int, seed: int = _GATHER_SEED) -> np.ndarray:
-    """``[num_points, per_point, 3]`` unit directions: a spherical Fibonacci set of ``per_point``
-    turned by a uniformly random rotation per point (seeded), so each point's set is stratified
-    and the points' sets independent."""
+def gather_directions(num_points: int, per_point: int, seed: int = _GATHER_SEED, rows: slice | None = None) -> np.ndarray:
+    """``[num_points, per_point, 3]`` unit directions (or those of the points ``rows``): a
+    spherical Fibonacci set of ``per_point`` turned by a uniformly random rotation per point
+    (seeded; the same for a point whatever the rows asked), so each point's set is stratified and
+    the points' sets independent."""
     i = np.arange(per_point, dtype=np.float64)
     z = 1.0 - (2.0 * i + 1.0) / per_point
     phi = 2.0 * np.pi * np.modf(i / ((1.0 + 5.0**0.5) / 2.0))[0]
     r = np.sqrt(np.maximum(1.0 - z * z, 0.0))
     base = np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
     rot = Rotation.random(num_points, random_state=seed).as_matrix()
-    return np.einsum("pij,kj->pki", rot, base)
+    return np.einsum("pij,kj->pki", rot if rows is None else rot[rows], base)
 
 
 def cast_gather_rays(tracer, origins: np.ndarray, directions: np.ndarray) -> dict:
@@ -280,7 +282,17 @@ def diffuse_gather(radio, tracer, grid, cells: np.ndarray, solids, sink, *, phot
     out["gather_points"] = int(len(origins))
     if not len(origins):
         return out, None
-    hits = cast_gather_rays(tracer, origins, gather_directions(len(origins), int(directions_per_point)))
+    # the gather rays in batches of about GATHER_RAYS_PER_BATCH (a city's few-hit cells can ask for
+    # tens of millions)
+    step = max(1, GATHER_RAYS_PER_BATCH // int(directions_per_point))
+    parts = []
+    for lo in range(0, len(origins), step):
+        rows = slice(lo, min(lo + step, len(origins)))
+        part = cast_gather_rays(tracer, origins[rows],
+                                gather_directions(len(origins), int(directions_per_point), rows=rows))
+        part["row"] = part["row"] + lo
+        parts.append(part)
+    hits = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     out["gather_hits"] = int(len(hits["x"]))
     if not len(hits["x"]):
         return out, None
