@@ -27,17 +27,20 @@ estimates it in few-hit cells (final gathering, as in photon mapping, Jensen 199
    with every mechanism as in the main pass, :attr:`Tracer.photons`) records each hit within the
    gather radius ``R`` of a gather point: point, face, incident field and direction, diffuse energy
    ``w_diff = S^2 |R E|^2``, path length and departure direction; it deposits nothing.
-3. **Density estimate.** At each gather point the photons within ``R`` on the same face plane and
-   side (normals within :data:`SAME_SIDE_COS`, plane offset within :data:`PLANE_TOLERANCE_M`) each
-   give a connection to the gather ray's origin, Sionna's scattered field of that photon
-   (``_scattered_field``, ``_received``: pattern, XPD, receiver polarisation as every deposit),
-   weighted by the disc kernel ``1 / (pi R^2)`` and ``4 pi / (directions) / |cos theta_x|``. Its
+3. **Density estimate.** At each gather point the :data:`DEFAULT_GATHER_NEIGHBOURS` photons
+   nearest to it within ``R`` (:func:`gather_pairs`; the kernel's radius shrinks to the farthest
+   one's distance where all lie within ``R``) on the same face plane and side (normals within
+   :data:`SAME_SIDE_COS`, plane offset within :data:`PLANE_TOLERANCE_M`) each give a connection
+   to the gather ray's origin, Sionna's scattered field of that photon (``_scattered_field``,
+   ``_received``: pattern, XPD, receiver polarisation as every deposit), weighted by the 2-D
+   Epanechnikov kernel (:func:`epanechnikov`) and ``4 pi / (directions) / |cos theta_x|``. Its
    delay is the photon's path length plus the distance to the cell centre, its arrival direction
    from the gather point to the centre, its departure the photon's: the same layers as any deposit.
 
-In the chosen cells these deposits replace the main pass's deposits whose last interaction was a
+In the chosen cells these deposits and the main pass's deposits whose last interaction was a
 lattice ray's diffuse reflection (first crossings after it and connections, tagged
-``diffuse_last`` by the tracer); everything else of the cell stays (specular paths, paths that
+``diffuse_last`` by the tracer) are weighed by their relative variances
+(``one_pass._gather_diffuse``); everything else of the cell stays (specular paths, paths that
 scatter and then reflect, diffracted rays). The estimate is biased by the kernel (irradiance
 blurred over ``R``; a disc that overhangs a face's edge misses its outer part) and consistent as
 ``R`` shrinks with more photons; its noise no longer depends on how close a scatter point lies.

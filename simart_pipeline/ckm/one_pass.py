@@ -913,10 +913,10 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         from the cells whose effective count (Kish) stays below ``gather_below_effective_hits``
         (or that no ray reached), by final gathering from photons (:mod:`simart_pipeline.ckm.gather`):
         ``gather_directions_per_point`` gather rays from each of a cell's outdoor sample points, a
-        photon pass of ``gather_photon_share x num_rays`` rays, a disc kernel of
-        ``gather_radius_m`` (None: one cell size); in those cells it replaces the main pass's
-        deposits whose last interaction was a lattice ray's diffuse reflection. ``diffuse_gather``
-        of the result says what it did
+        photon pass of ``gather_photon_share x num_rays`` rays, a kernel of at most
+        ``gather_radius_m`` (None: one cell size); in those cells it is weighed with the main
+        pass's deposits whose last interaction was a lattice ray's diffuse reflection by their
+        relative variances. ``diffuse_gather`` of the result says what it did
     :param accumulate_on_device: sum the deposits on the Dr.Jit device (:class:`_DeviceAccumulator`)
         instead of on the host with numpy (:class:`_Accumulator`); None: on the device where the
         variant is ``cuda`` (a GPU), on the host otherwise (bitwise repeatable; on two CPU cores
