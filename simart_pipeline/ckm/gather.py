@@ -52,8 +52,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from simart_pipeline.ckm.outdoor import OUTDOOR_SAMPLES_PER_AXIS, anything_above
-from simart_pipeline.scene.solids import inside_solids
+from simart_pipeline.ckm.outdoor import OUTDOOR_SAMPLES_PER_AXIS, cell_sample_points, points_inside
 
 DEFAULT_GATHER_DIRECTIONS_PER_POINT = 32  # x 16 outdoor sample points: 512 gather rays a cell
 DEFAULT_GATHER_RADIUS_CELLS = 1.0  # the kernel radius R, in cell sizes
@@ -109,32 +108,29 @@ class PhotonRecorder:
 def gather_origins(radio, grid, cells: np.ndarray, solids) -> tuple[np.ndarray, np.ndarray]:
     """The outdoor sample points of the flat ``cells`` (those of :func:`.outdoor.outdoor_fraction`:
     the centres of a 4 x 4 finer grid per cell, points inside a solid left out): (points ``[P, 3]``
-    m, their cell)."""
-    n = OUTDOOR_SAMPLES_PER_AXIS
-    off = (np.arange(n) + 0.5) / n - 0.5
-    c = grid.centres()[cells]
-    ox, oy = np.meshgrid(off * grid.dx, off * grid.dy)
-    pts = np.stack([c[:, None, 0] + ox.ravel()[None], c[:, None, 1] + oy.ravel()[None],
-                    np.broadcast_to(c[:, None, 2], (len(c), n * n))], -1).reshape(-1, 3)
-    cell_of = np.repeat(cells, n * n)
-    inside = anything_above(radio, pts)
-    if inside.any():
-        inside[inside] = inside_solids(solids, pts[inside])
+    m, their cell). The same points and test as the cells' outdoor share, which the gather's
+    normalisation relies on (:func:`gather_deposits`)."""
+    pts = cell_sample_points(grid, cells)
+    cell_of = np.repeat(cells, OUTDOOR_SAMPLES_PER_AXIS**2)
+    inside = points_inside(radio, pts, solids)
     return pts[~inside], cell_of[~inside]
 
 
-def gather_directions(num_points: int, per_point: int, seed: int = _GATHER_SEED, rows: slice | None = None) -> np.ndarray:
-    """``[num_points, per_point, 3]`` unit directions (or those of the points ``rows``): a
-    spherical Fibonacci set of ``per_point`` turned by a uniformly random rotation per point
-    (seeded; the same for a point whatever the rows asked), so each point's set is stratified and
-    the points' sets independent."""
+def gather_rotations(num_points: int, seed: int = _GATHER_SEED) -> np.ndarray:
+    """``[num_points, 3, 3]`` uniformly random rotations, one per gather point (seeded)."""
+    return Rotation.random(num_points, random_state=seed).as_matrix()
+
+
+def gather_directions(rotations: np.ndarray, per_point: int) -> np.ndarray:
+    """``[len(rotations), per_point, 3]`` unit directions: a spherical Fibonacci set of
+    ``per_point`` turned by each point's rotation (:func:`gather_rotations`), so each point's set
+    is stratified and the points' sets independent."""
     i = np.arange(per_point, dtype=np.float64)
     z = 1.0 - (2.0 * i + 1.0) / per_point
     phi = 2.0 * np.pi * np.modf(i / ((1.0 + 5.0**0.5) / 2.0))[0]
     r = np.sqrt(np.maximum(1.0 - z * z, 0.0))
     base = np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
-    rot = Rotation.random(num_points, random_state=seed).as_matrix()
-    return np.einsum("pij,kj->pki", rot if rows is None else rot[rows], base)
+    return np.einsum("pij,kj->pki", rotations, base)
 
 
 def cast_gather_rays(tracer, origins: np.ndarray, directions: np.ndarray) -> dict:
@@ -288,11 +284,11 @@ def diffuse_gather(radio, tracer, grid, cells: np.ndarray, solids, sink, *, phot
     # the gather rays in batches of about GATHER_RAYS_PER_BATCH (a city's few-hit cells can ask for
     # tens of millions)
     step = max(1, GATHER_RAYS_PER_BATCH // int(directions_per_point))
+    rotations = gather_rotations(len(origins))  # each point's own, whatever its batch
     parts = []
     for lo in range(0, len(origins), step):
         rows = slice(lo, min(lo + step, len(origins)))
-        part = cast_gather_rays(tracer, origins[rows],
-                                gather_directions(len(origins), int(directions_per_point), rows=rows))
+        part = cast_gather_rays(tracer, origins[rows], gather_directions(rotations[rows], int(directions_per_point)))
         part["row"] = part["row"] + lo
         parts.append(part)
     hits = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}

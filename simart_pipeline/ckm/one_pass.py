@@ -1089,8 +1089,8 @@ def _gather_diffuse(acc: _Accumulator, radio, tracer: Tracer, grid, masked, frac
                     photon_rays: int, batch: int, directions_per_point: int, radius_m, new_accumulator) -> dict:
     """The diffuse gather of ``one_pass_moments(diffuse_gather=True)``: the cells outside the mask
     that no ray reached or whose effective count stays below ``below``, their last diffuse
-    reflection gathered (:func:`simart_pipeline.ckm.gather.diffuse_gather`) and put in place of the
-    main pass's deposits tagged ``diffuse_last`` there. Returns what it did."""
+    reflection gathered (:func:`simart_pipeline.ckm.gather.diffuse_gather`) and weighed there with
+    the main pass's deposits tagged ``diffuse_last`` by their relative variances. Returns what it did."""
     from simart_pipeline.ckm.gather import diffuse_gather
 
     m = acc.summed()
@@ -1111,13 +1111,12 @@ def _gather_diffuse(acc: _Accumulator, radio, tracer: Tracer, grid, masked, frac
     if var_gather is None:
         return out
     old, new = acc.diffuse_last.summed(), gathered.summed()
-    # the two estimates of the cell's last diffuse reflection weighted by their inverse variances:
-    # the main pass's (its deposits' sum of squares) where a far scatter point lit brightly makes
-    # few gather rays carry the cell, the gather's where a few near scatter points carry the main
-    # pass's (docs/ckm-one-pass.md, "Session 35")
-    # relative variances (1 / effective count for the rays' deposits): a few deposits that missed a
-    # cell's rare large ones say little about its absolute variance, their spread still says how
-    # few carry it; no deposit at all: no estimate (weight 0)
+    # the two estimates of the cell's last diffuse reflection weighted by their inverse relative
+    # variances: the main pass's where a far scatter point lit brightly makes few gather rays carry
+    # the cell, the gather's where a few near scatter points carry the main pass's
+    # (docs/ckm-one-pass.md, "Session 35"). Relative (for the rays 1 / their effective count): a few
+    # deposits that missed a cell's rare large ones say little about its absolute variance, their
+    # spread still says how few carry it; no deposit at all: no estimate (weight 0)
     rel_rays = np.where(old.power > 0, old.power_sq / np.where(old.power > 0, old.power, 1.0) ** 2, np.inf)
     rel_gather = np.where(new.power > 0, var_gather / np.where(new.power > 0, new.power, 1.0) ** 2, np.inf)
     with np.errstate(invalid="ignore"):

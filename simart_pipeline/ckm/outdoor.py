@@ -61,10 +61,32 @@ def anything_above(radio, points: np.ndarray) -> np.ndarray:
     return np.asarray(hit.numpy(), bool)
 
 
+def cell_sample_points(grid, cells: np.ndarray | None = None,
+                       samples_per_axis: int = OUTDOOR_SAMPLES_PER_AXIS) -> np.ndarray:
+    """``[len(cells) * samples_per_axis**2, 3]`` points (m): the centres of a
+    ``samples_per_axis``-times finer grid in each of the flat ``cells`` of ``grid`` (None: every
+    cell), cell by cell, x fastest within a cell."""
+    off = (np.arange(samples_per_axis) + 0.5) / samples_per_axis - 0.5
+    c = grid.centres() if cells is None else grid.centres()[cells]
+    px = c[:, 0, None, None] + off[None, None, :] * grid.dx + 0 * off[None, :, None]
+    py = c[:, 1, None, None] + off[None, :, None] * grid.dy + 0 * off[None, None, :]
+    pz = np.broadcast_to(c[:, 2, None, None], px.shape)
+    return np.column_stack([px.ravel(), py.ravel(), pz.ravel()])
+
+
+def points_inside(radio, points: np.ndarray, solids: Solids | None = None) -> np.ndarray:
+    """``[N]`` bool: which of ``points [N, 3]`` (m) lie inside a solid of the radio mesh (a ray cast
+    up first, then the solids' faces on the vertical line for the points with anything above)."""
+    inside = anything_above(radio, points)
+    if inside.any():
+        inside[inside] = inside_solids(radio_solids(radio) if solids is None else solids, points[inside])
+    return inside
+
+
 def outdoor_fraction(radio, x_m, y_m, heights_m, samples_per_axis: int = OUTDOOR_SAMPLES_PER_AXIS,
                      cell_size_m: float | None = None, solids: Solids | None = None) -> np.ndarray:
     """Share of each cell's area outdoors, ``[num_heights, ny, nx]``, from ``samples_per_axis**2``
-    points per cell (the centres of a ``samples_per_axis``-times finer grid; 1: the cell centre).
+    points per cell (:func:`cell_sample_points`; 1: the cell centre).
 
     :param radio: :class:`simart_pipeline.radio.tracer.RadioScene`
     :param x_m, y_m, heights_m, cell_size_m: the grid, as in
@@ -72,13 +94,5 @@ def outdoor_fraction(radio, x_m, y_m, heights_m, samples_per_axis: int = OUTDOOR
     :param solids: :func:`radio_solids` of ``radio``, if the caller has them already
     """
     g = grid_from_centres(x_m, y_m, heights_m, cell_size_m)
-    off = (np.arange(samples_per_axis) + 0.5) / samples_per_axis - 0.5
-    c = g.centres()
-    px = c[:, 0, None, None] + off[None, None, :] * g.dx + 0 * off[None, :, None]
-    py = c[:, 1, None, None] + off[None, :, None] * g.dy + 0 * off[None, None, :]
-    pz = np.broadcast_to(c[:, 2, None, None], px.shape)
-    pts = np.column_stack([px.ravel(), py.ravel(), pz.ravel()])
-    inside = anything_above(radio, pts)
-    if inside.any():
-        inside[inside] = inside_solids(radio_solids(radio) if solids is None else solids, pts[inside])
-    return (1.0 - inside.reshape(len(c), -1).mean(axis=1)).reshape(g.shape)
+    inside = points_inside(radio, cell_sample_points(g, None, samples_per_axis), solids)
+    return (1.0 - inside.reshape(int(np.prod(g.shape)), -1).mean(axis=1)).reshape(g.shape)
