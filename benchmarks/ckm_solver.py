@@ -264,6 +264,10 @@ _LETTERS = {int(InteractionKind.SPECULAR): "R", int(InteractionKind.DIFFUSE): "S
             int(InteractionKind.REFRACTION): "T", int(InteractionKind.DIFFRACTION): "D"}
 
 
+# --diffuse-gather: the one-pass's diffuse_gather
+GATHER_CHOICES = {"on": True, "off": False, "auto": "auto"}
+
+
 def reference_samples(spec: dict, mechanisms: str) -> int:
     """PathSolver's samples per source for the main reference and the per-cell loop of a set on a scene."""
     return int(spec.get("reference_samples", {}).get(mechanisms, REFERENCE_SAMPLES[mechanisms]))
@@ -1098,7 +1102,7 @@ def grid_axes(spec: dict) -> tuple[np.ndarray, np.ndarray]:
 def run_scene(name: str, spec: dict, num_rays: int, sets, quick: bool, seed: int, ray_counts=RAY_COUNTS,
               log=print, converged_points: int = 1, cells: dict | None = None,
               converged_cells: int | None = None, converged_map: bool = True,
-              points_per_side: dict | None = None, diffuse_gather: bool | None = None) -> dict:
+              points_per_side: dict | None = None, diffuse_gather: bool | str | None = None) -> dict:
     """Every mechanism set of ``sets`` on one scene (``diffuse_gather``: the one-pass's
     ``diffuse_gather``, None: the config's ``ckm.diffuse_gather``); a set's sizes from :data:`COMPARE_CELLS`,
     :data:`LOOP_CELLS`, :data:`LOOP_BUDGET_S` (``quick`` picks the first of each pair), or ``cells``
@@ -1642,7 +1646,7 @@ def parse_args(argv=None) -> tuple[argparse.Namespace, dict[str, int]]:
     ap.add_argument("--points-per-side", nargs="+", default=[], metavar="SET=N",
                     help="the reference's n x n points per sampled cell of a set instead of "
                          "REFERENCE_POINTS_PER_SIDE's (e.g. all=5, to judge near-tie beams)")
-    ap.add_argument("--diffuse-gather", choices=("on", "off"), default=None,
+    ap.add_argument("--diffuse-gather", choices=tuple(GATHER_CHOICES), default=None,
                     help="the one-pass's diffuse gather on few-hit cells (default: the config's ckm.diffuse_gather)")
     ap.add_argument("--no-converged-map", action="store_true",
                     help="skip the one-pass map at CONVERGED_SAMPLES_FACTOR times the samples")
@@ -1688,8 +1692,7 @@ def main(argv=None) -> int:
                                             converged_cells=args.converged_cells,
                                             converged_map=not args.no_converged_map,
                                             points_per_side=args.points_per_side,
-                                            diffuse_gather=None if args.diffuse_gather is None
-                                            else args.diffuse_gather == "on")
+                                            diffuse_gather=GATHER_CHOICES.get(args.diffuse_gather))
         print(json.dumps({name: results["scenes"][name]}, indent=1), flush=True)
     results["settings"]["total_s"] = round(time.perf_counter() - t0, 1)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -382,7 +382,12 @@ def test_the_config_sets_the_fast_modes_ray_batch_and_the_layers_do_not_depend_o
     from simart_pipeline.config.ckm import Ckm
 
     assert Ckm().diffuse_connections == op.DEFAULT_DIFFUSE_CONNECTIONS  # the front's choice, in both places
-    assert Ckm().diffuse_gather is False  # off unless asked for, as the solver's own default
+    # the front's choice: where few-hit cells are many (the solver's own default is off: a direct
+    # call gets what it asks for)
+    assert Ckm().diffuse_gather == "auto" and _cfg(tiny_scene, lambda raw: None).ckm.diffuse_gather == "auto"
+    assert _cfg(tiny_scene, lambda raw: raw["ckm"].update(diffuse_gather=False)).ckm.diffuse_gather is False
+    with pytest.raises(ValueError, match="diffuse_gather"):
+        _cfg(tiny_scene, lambda raw: raw["ckm"].update(diffuse_gather="sometimes"))
     with pytest.raises(ValueError, match="diffuse_connections"):
         _cfg(tiny_scene, lambda raw: raw["ckm"].update(diffuse_connections=-1))
 

@@ -26,6 +26,7 @@ from scipy.spatial.transform import Rotation
 
 from conftest import write_radio_scene
 
+from simart_pipeline.ckm.compiled import compiled
 from simart_pipeline.ckm import one_pass as op
 from simart_pipeline.ckm import shoot_bounce as sb
 from simart_pipeline.ckm.moments import CellMoments
@@ -566,7 +567,7 @@ def test_one_loop_of_per_cell_sums_equals_a_bincount_per_moment():
 
 def test_the_compiled_loop_still_compiles_where_no_cache_is_writable(monkeypatch):
     """A read-only install (no writable __pycache__ or user cache): numba refuses ``cache=True`` at
-    decoration; ``_compiled`` compiles without a cache instead of failing the import."""
+    decoration; ``compiled`` compiles without a cache instead of failing the import."""
     import numba
 
     real = numba.njit
@@ -581,7 +582,7 @@ def test_the_compiled_loop_still_compiles_where_no_cache_is_writable(monkeypatch
     def add_one(x):
         return x + 1
 
-    f = op._compiled(add_one)
+    f = compiled(add_one)
     assert f(41) == 42 and isinstance(f, numba.core.registry.CPUDispatcher) and f._cache.__class__.__name__ == "NullCache"
 
 
