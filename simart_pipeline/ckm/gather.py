@@ -83,7 +83,8 @@ class PhotonRecorder:
     """Keeps the photons that lie within ``radius_m`` of any gather point and stores them as numpy.
     The test is a boolean voxel grid over the gather points' bounding box: voxels of at least the
     radius (coarser where the box would need more than :data:`MAX_RECORDER_VOXELS`), the gather
-    points' voxels dilated by one."""
+    points' voxels dilated by one (half-radius voxels dilated by two kept 96 % of Munich's photons
+    at five times the grid's cost)."""
 
     def __init__(self, gather_points_m: np.ndarray, radius_m: float):
         pts = np.asarray(gather_points_m, np.float64)
@@ -106,7 +107,7 @@ class PhotonRecorder:
         """Flat voxel indices (C order), -1 outside the box (compiled: numpy's temporaries of a
         few million points cost more than the arithmetic)."""
         keys = np.empty(len(points_m), np.int64)
-        _voxel_keys(np.ascontiguousarray(points_m, np.float64), self.lo, self.voxel, self.shape, keys)
+        _voxel_keys(np.ascontiguousarray(points_m), self.lo, self.voxel, self.shape, keys)
         return keys
 
     def keep(self, points_m: np.ndarray) -> np.ndarray:
@@ -216,7 +217,7 @@ def gather_pairs(hits: dict, photons: dict, radius_m: float, neighbours: int = D
     radius = np.full(len(x_hits), float(radius_m))
     if not len(x_hits) or not len(photons["p"]):
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), radius
-    p = np.asarray(photons["p"], np.float64)
+    p = np.ascontiguousarray(photons["p"])  # float32 as recorded: the loop's arithmetic is float64
     box = np.array([[np.inf] * 3, [-np.inf] * 3])
     _grow_box(x_hits, box)
     _grow_box(p, box)
@@ -233,7 +234,7 @@ def gather_pairs(hits: dict, photons: dict, radius_m: float, neighbours: int = D
     bits = max(4, int(np.ceil(np.log2(2 * len(first)))))
     table_keys, table_voxels = _voxel_table(keys[first], bits)
     p_sorted = np.ascontiguousarray(p[order])
-    n_sorted = np.ascontiguousarray(np.asarray(photons["n"], np.float64)[order])
+    n_sorted = np.ascontiguousarray(np.asarray(photons["n"])[order])
     hit_keys = np.empty(len(x_hits), np.int64)
     _voxel_keys(x_hits, lo, float(radius_m), dims, hit_keys)
     hit_order = np.argsort(hit_keys)
