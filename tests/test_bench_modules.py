@@ -536,9 +536,11 @@ def test_bench_runs_ckm_solver_with_fewer_cells_and_no_convergence_diagnostics()
     # the reference's points per cell of a set, for this run only
     points, _ = ckm_solver.parse_args(["--out", "x", "--points-per-side", "all=5"])
     assert points.points_per_side == {"all": 5} and defaults.points_per_side == {}
-    # the diffuse gather: the config's by default, on or off for this run
+    # the diffuse gather: the config's by default, on, off or auto for this run (the solver's values)
     gather, _ = ckm_solver.parse_args(["--out", "x", "--diffuse-gather", "on"])
     assert defaults.diffuse_gather is None and gather.diffuse_gather == "on"
+    auto, _ = ckm_solver.parse_args(["--out", "x", "--diffuse-gather", "auto"])
+    assert [ckm_solver.GATHER_CHOICES.get(a.diffuse_gather) for a in (defaults, gather, auto)] == [None, True, "auto"]
     with pytest.raises(SystemExit):
         ckm_solver.parse_args(["--out", "x", "--diffuse-gather", "yes"])
 

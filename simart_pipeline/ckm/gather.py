@@ -209,9 +209,9 @@ def gather_pairs(hits: dict, photons: dict, radius_m: float, neighbours: int = D
     The search is a voxel grid of side ``radius_m`` (a hash table of the photons' voxels: a city's
     box would hold millions of empty ones), the 27 voxels around a hit searched in a compiled loop,
     the hits in voxel order (neighbouring hits read the same photons: 3-4x faster than in ray
-    order) and split between threads. A k-d tree (``scipy.spatial.cKDTree``) finds the same pairs
-    at about 3x the time on Munich's 2 M gather hits. Pairs come in the hits' voxel order, each
-    hit's by distance."""
+    order) and split between threads. A k-d tree (``scipy.spatial.cKDTree``) found the same pairs
+    in 2.2x the time on Munich's 2.1 M gather hits (1.5 against 0.69 s). Pairs come in the hits'
+    voxel order, each hit's by distance."""
     x_hits = np.ascontiguousarray(hits["x"], np.float64)
     n_hits = np.ascontiguousarray(hits["n"], np.float64)
     radius = np.full(len(x_hits), float(radius_m))

@@ -210,7 +210,7 @@ class _Accumulator:
         m = self.m
         if self.diffuse_last is not None and "diffuse_last" in dep:
             # a set's tagged deposits by index: a boolean mask per field counts the mask each time
-            # (a tenth of the canyon's 29 M deposits are tagged: 0.26 -> 0.05 s of the sums' thread)
+            # (a tenth of the canyon's 29 M deposits are tagged: 0.26 -> 0.08 s of the sums' thread)
             tagged = np.flatnonzero(dep["diffuse_last"])
             if len(tagged) == len(dep["cell"]):
                 self.diffuse_last({k: v for k, v in dep.items() if k != "diffuse_last"}, line_of_sight)
