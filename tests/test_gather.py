@@ -74,11 +74,13 @@ def test_gather_on_no_cell_leaves_the_main_pass_bit_for_bit(ground, connections)
         np.testing.assert_array_equal(getattr(on, f), getattr(off, f), err_msg=f)
 
 
-def test_auto_gathers_where_few_hit_cells_make_the_share_and_else_leaves_the_main_pass(ground):
+def test_auto_gathers_where_few_hit_cells_make_the_share_and_else_leaves_the_main_pass(ground, monkeypatch):
     """``diffuse_gather="auto"``: where the few-hit cells are at least ``gather_auto_min_share`` of
     the open cells it is the gather (bit for bit), else the main pass's map bit for bit, and the
-    result says which, with the share it measured."""
+    result says which, with the share it measured. The share counts the cells below the threshold
+    scaled to ``GATHER_AUTO_REFERENCE_RAYS`` rays: at that many rays, the call's own few-hit share."""
     radio, x, y, _ = ground
+    monkeypatch.setattr(op, "GATHER_AUTO_REFERENCE_RAYS", 30_000)
     run = lambda **kw: op.one_pass_moments(radio, TX, np.zeros(3), x, y, np.array([H_RX]), 30_000, 1,  # noqa: E731
                                            **KW, **kw)
     off, on = run(), run(diffuse_gather=True, gather_below_effective_hits=20.0)
@@ -87,6 +89,7 @@ def test_auto_gathers_where_few_hit_cells_make_the_share_and_else_leaves_the_mai
     below = run(diffuse_gather="auto", gather_below_effective_hits=20.0, gather_auto_min_share=share * 1.01)
     above = run(diffuse_gather="auto", gather_below_effective_hits=20.0, gather_auto_min_share=share * 0.99)
     assert below.diffuse_gather["cells"] == 0 and below.diffuse_gather["few_hit_share"] == share
+    assert below.diffuse_gather["auto_share"] == share == on.diffuse_gather["auto_share"]
     assert above.diffuse_gather["cells"] == on.diffuse_gather["cells"]
     for f in ("power", "power_sq", "count", "p_excess_delay_s", "p_cos"):
         np.testing.assert_array_equal(getattr(below, f), getattr(off, f), err_msg=f)
@@ -94,6 +97,10 @@ def test_auto_gathers_where_few_hit_cells_make_the_share_and_else_leaves_the_mai
     assert not np.array_equal(on.power, off.power)
     with pytest.raises(ValueError, match="diffuse_gather"):
         run(diffuse_gather="on")
+    # at 1e7 rays' scale (30,000 rays: a threshold of 0.06) no cell of the ground is weak: not gathered
+    monkeypatch.setattr(op, "GATHER_AUTO_REFERENCE_RAYS", 10**7)
+    scaled = run(diffuse_gather="auto", gather_below_effective_hits=20.0, gather_auto_min_share=0.01)
+    assert scaled.diffuse_gather["auto_share"] == 0 and scaled.diffuse_gather["cells"] == 0
 
 
 def test_gather_and_rays_weighed_together_are_closer_to_the_model_than_the_rays(ground):

@@ -70,7 +70,7 @@ def ckm_layers(context: dg.AssetExecutionContext, project: ProjectResource, ray_
             meta[f"{name}_diffuse_gather"] = "; ".join(
                 f"bs {i}: {p['cells']} few-hit cells gathered, {p['photons']} photons, {p['pairs']} pairs"
                 if p and p["cells"] else
-                f"bs {i}: not gathered ({p.get('few_hit_share', 0):.0%} few-hit cells)" if p
+                f"bs {i}: not gathered ({p.get('auto_share', 0):.0%} few-hit cells at 1e7 rays)" if p
                 else f"bs {i}: none" for i, p in enumerate(ds.attrs["diffuse_gather_per_bs"]))
     meta["compute_s"] = round(time.perf_counter() - t0, 2)
     meta["cells"] = int(grid.traced.size)

@@ -67,10 +67,14 @@ DEFAULT_PHOTON_RAY_SHARE = 0.25  # photon rays per main-pass ray
 DEFAULT_GATHER_NEIGHBOURS = 16  # photons examined per gather point at most (gather_pairs)
 DEFAULT_GATHER_BELOW_EFFECTIVE_HITS = 10.0  # cells whose effective count is below this are gathered
 # diffuse_gather="auto" gathers where the few-hit cells are at least this share of the cells outside
-# the mask: Munich's 47 % (the map's mean error -1.8 -> -0.6 dB, p95 16.5 -> 12.5 dB for 1.2x the
-# time; twice the rays: 1.7x, -1.3 and 14.4 dB), not the street canyon's 8 % (2x the time for
-# 0.07 dB of p95) nor urban's 22 % (docs/ckm-one-pass.md "Session 36")
-DEFAULT_GATHER_AUTO_MIN_SHARE = 0.3
+# the mask (counted at GATHER_AUTO_REFERENCE_RAYS): Munich's 29-54 % at 3e6-1e8 rays (at 1e7 the
+# map's mean error -1.8 -> -0.6 dB, p95 16.5 -> 12.5 dB for 1.2x the time; 1.2x the rays: -1.7,
+# 15.6 dB), not urban's 11-22 % at 3e6-1e7 (1.3x the rays do better in less time) nor the street
+# canyon's 4-8 % (docs/ckm-one-pass.md "Session 36")
+DEFAULT_GATHER_AUTO_MIN_SHARE = 0.25
+# ... counting the cells that would be few-hit cells at this many rays (effective count below
+# threshold x num_rays / this): the shares above are those at 1e7 rays, whatever the call's rays
+GATHER_AUTO_REFERENCE_RAYS = 10**7
 PLANE_TOLERANCE_M = 0.05  # a photon's point lies this close to the gather point's face plane
 SAME_SIDE_COS = 0.999  # and its face normal (incoming side) within 2.6 deg of the gather face's
 MAX_RECORDER_VOXELS = 1 << 26  # the photon recorder's voxel grid: 64 MB at most

@@ -96,7 +96,8 @@ from simart_pipeline.ckm.compiled import compiled as _compiled
 from simart_pipeline.ckm.moments import CellMoments, layers_from_moments, too_few_for_power
 from simart_pipeline.ckm.diffraction import STRETCHES_PER_PAIR
 from simart_pipeline.ckm.gather import (DEFAULT_GATHER_AUTO_MIN_SHARE, DEFAULT_GATHER_BELOW_EFFECTIVE_HITS,
-                                        DEFAULT_GATHER_DIRECTIONS_PER_POINT, DEFAULT_PHOTON_RAY_SHARE)
+                                        DEFAULT_GATHER_DIRECTIONS_PER_POINT, DEFAULT_PHOTON_RAY_SHARE,
+                                        GATHER_AUTO_REFERENCE_RAYS)
 from simart_pipeline.ckm.outdoor import outdoor_fraction, radio_solids
 from simart_pipeline.ckm.shoot_bounce import (DIRECTION_QUANTUM, NOT_A_BIN, Q_BITS, Q_OFFSET, TAGS, Grid,
                                               LatticeBins, Tracer, grid_from_centres)
@@ -913,10 +914,10 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         photon pass of ``gather_photon_share x num_rays`` rays, a kernel of at most
         ``gather_radius_m`` (None: one cell size); in those cells it is weighed with the main
         pass's deposits whose last interaction was a lattice ray's diffuse reflection by their
-        relative variances. ``"auto"``: so where the few-hit cells are at least
-        ``gather_auto_min_share`` of the cells outside the mask (the gather's photon pass is a cost
-        fixed per call, its benefit grows with the cells it serves; docs/ckm-one-pass.md "Session
-        36"), else not. ``diffuse_gather`` of the result says what it did
+        relative variances. ``"auto"``: so where the cells that would be few-hit cells at
+        ``GATHER_AUTO_REFERENCE_RAYS`` (1e7) rays are at least ``gather_auto_min_share`` of the
+        cells outside the mask (where few are, more rays buy more than the gather at its cost;
+        docs/ckm-one-pass.md "Session 36"), else not. ``diffuse_gather`` of the result says what it did
     :param accumulate_on_device: sum the deposits on the Dr.Jit device (:class:`_DeviceAccumulator`)
         instead of on the host with numpy (:class:`_Accumulator`); None: on the device where the
         variant is ``cuda`` (a GPU), on the host otherwise (bitwise repeatable; on two CPU cores
@@ -1023,7 +1024,8 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         tracer.tag_diffuse_last = False
         gather = _gather_diffuse(
             acc, radio, tracer, grid, masked.ravel(), frac.ravel(), float(gather_below_effective_hits),
-            float(gather_auto_min_share) if diffuse_gather == "auto" else 0.0, solids, int(max(1, round(float(gather_photon_share) * int(num_rays)))), int(batch_rays),
+            float(gather_auto_min_share) if diffuse_gather == "auto" else 0.0, int(num_rays), solids,
+            int(max(1, round(float(gather_photon_share) * int(num_rays)))), int(batch_rays),
             int(gather_directions_per_point), gather_radius_m,
             lambda: accumulator(grid, tx_position_m, codebook, ant, rot, radio.wavelength_m))
     m = acc.moments()
@@ -1088,14 +1090,14 @@ def _resample_undersampled(acc: _Accumulator, wedges, factor: int, masked, frac,
 
 
 def _gather_diffuse(acc: _Accumulator, radio, tracer: Tracer, grid, masked, frac, below: float, min_share: float,
-                    solids, photon_rays: int, batch: int, directions_per_point: int, radius_m,
+                    num_rays: int, solids, photon_rays: int, batch: int, directions_per_point: int, radius_m,
                     new_accumulator) -> dict:
     """The diffuse gather of ``one_pass_moments(diffuse_gather=True)``: the cells outside the mask
     that no ray reached or whose effective count stays below ``below``, their last diffuse
     reflection gathered (:func:`simart_pipeline.ckm.gather.diffuse_gather`) and weighed there with
     the main pass's deposits tagged ``diffuse_last`` by their relative variances; none where those
-    cells are fewer than ``min_share`` of the cells outside the mask (``diffuse_gather="auto"``).
-    Returns what it did."""
+    cells are fewer than ``min_share`` of the cells outside the mask (``diffuse_gather="auto"``),
+    counted at :data:`GATHER_AUTO_REFERENCE_RAYS` rays (``auto_share``). Returns what it did."""
     from simart_pipeline.ckm.gather import diffuse_gather
 
     m = acc.summed()
@@ -1107,9 +1109,19 @@ def _gather_diffuse(acc: _Accumulator, radio, tracer: Tracer, grid, masked, frac
     open_cells = ~masked & (frac > 0)
     cells = np.flatnonzero(open_cells & (effective < below))
     share = len(cells) / max(int(open_cells.sum()), 1)
-    if share < min_share:
-        return {"cells": 0, "few_hit_cells": int(len(cells)), "few_hit_share": round(share, 4),
-                "auto_min_share": float(min_share), "below_effective_hits": float(below), "photons": 0, "pairs": 0}
+    # auto decides on the cells that would be few-hit cells at GATHER_AUTO_REFERENCE_RAYS rays (the
+    # effective count grows in proportion to the rays): a scene's property, not its sampling's. By
+    # the share at the call's own rays urban was gathered at 3e6 rays (45 %: twice the time, where
+    # 1.3x the rays did better) and Munich not at 1e8 (28 %), the gather helping there
+    # (docs/ckm-one-pass.md "Session 36")
+    auto_share = float(np.count_nonzero(open_cells & (effective < below * num_rays / GATHER_AUTO_REFERENCE_RAYS))
+                       ) / max(int(open_cells.sum()), 1)
+    record = {"few_hit_cells": int(len(cells)), "few_hit_share": round(share, 4), "below_effective_hits": float(below),
+              "auto_share": round(auto_share, 4)}
+    if min_share > 0:
+        record["auto_min_share"] = float(min_share)
+    if auto_share < min_share:
+        return {"cells": 0, **record, "photons": 0, "pairs": 0}
     if solids is None:
         solids = radio_solids(radio)
     gathered = new_accumulator()
@@ -1117,9 +1129,7 @@ def _gather_diffuse(acc: _Accumulator, radio, tracer: Tracer, grid, masked, frac
         out, var_gather = diffuse_gather(radio, tracer, grid, cells, solids, sink, photon_rays=photon_rays,
                                          batch_rays=batch, directions_per_point=directions_per_point,
                                          radius_m=radius_m)
-    out.update(few_hit_cells=int(len(cells)), few_hit_share=round(share, 4), below_effective_hits=float(below))
-    if min_share > 0:
-        out["auto_min_share"] = float(min_share)
+    out.update(record)
     if var_gather is None:
         return out
     old, new = acc.diffuse_last.summed(), gathered.summed()

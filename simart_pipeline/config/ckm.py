@@ -106,13 +106,14 @@ class Ckm(_Model):
     # not (docs/ckm-one-pass.md "Session 35"). "auto", as the run-time/error front chose ("Session
     # 36"): on Munich, where 47 % of the cells are few-hit cells, it takes the map's mean error from
     # -1.8 to -0.6 dB and p95 from 16.5 to 12.5 dB for 1.2x the time (twice the rays: 1.7x, -1.3 and
-    # 14.4 dB); where few cells need it (the street canyon's 8 %) its photon pass costs more than it gives.
+    # 14.4 dB); where few cells need it (the street canyon's 8 %, urban's 22 %) more rays buy more at
+    # its cost. The share is counted at 1e7 rays whatever num_rays (ckm/gather.py).
     diffuse_gather: Literal["auto"] | bool = Field(
         "auto", description="fast mode, with diffuse reflection: in cells whose effective number of ray hits "
         "stays below 10 (or that no ray reached), estimate the last diffuse reflection again by gathering "
         "from the cell (photons of a second pass of a quarter of num_rays, 256 gather rays a cell) and "
         "weigh it with the rays' estimate by their relative variances; 'auto': only where those cells are "
-        "at least 30 % of the cells outside the mask")
+        "at least 25 % of the cells outside the mask (counted at 1e7 rays)")
     adaptive_max_rays: int | None = Field(
         None, ge=1_000, description="fast mode: where more than max_undersampled_fraction of the reached "
         "cells have fewer than min_hits_for_power hits, the pass is rerun with 4x the rays while that "
