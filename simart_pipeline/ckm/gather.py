@@ -91,9 +91,11 @@ class PhotonRecorder:
     at five times the grid's cost)."""
 
     def __init__(self, gather_points_m: np.ndarray, radius_m: float):
-        pts = np.asarray(gather_points_m, np.float64)
-        self.lo = pts.min(axis=0) - radius_m
-        extent = pts.max(axis=0) + radius_m - self.lo
+        pts = np.ascontiguousarray(gather_points_m, np.float64)
+        box = np.array([[np.inf] * 3, [-np.inf] * 3])
+        _grow_box(pts, box)
+        self.lo = box[0] - radius_m
+        extent = box[1] + radius_m - self.lo
         self.voxel = max(float(radius_m), float(np.cbrt(np.prod(extent + radius_m) / MAX_RECORDER_VOXELS)))
         self.shape = np.maximum(np.ceil(extent / self.voxel).astype(np.int64) + 1, 1)
         occupied = np.zeros(self.shape, bool)
@@ -212,8 +214,8 @@ def gather_pairs(hits: dict, photons: dict, radius_m: float, neighbours: int = D
 
     The search is a voxel grid of side ``radius_m`` (a hash table of the photons' voxels: a city's
     box would hold millions of empty ones), the 27 voxels around a hit searched in a compiled loop,
-    the hits in voxel order (neighbouring hits read the same photons: 3-4x faster than in ray
-    order) and split between threads. A k-d tree (``scipy.spatial.cKDTree``) found the same pairs
+    the hits in voxel order (neighbouring hits read the same photons: 1.8x faster than in ray
+    order, 0.72 -> 0.39 s on one thread) and split between threads. A k-d tree (``scipy.spatial.cKDTree``) found the same pairs
     in 2.2x the time on Munich's 2.1 M gather hits (1.5 against 0.69 s). Pairs come in the hits'
     voxel order, each hit's by distance."""
     x_hits = np.ascontiguousarray(hits["x"], np.float64)
