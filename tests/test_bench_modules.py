@@ -972,3 +972,47 @@ def test_kernel_profile_of_a_small_call_names_the_tracer_and_restores_it():
     assert r["kernels"] == sum(row["launches"] for row in r["rows"]) > 10 and r["kernel_ms"] > 0
     functions = {row["function"].split("/")[-1] for row in r["rows"]}
     assert {"Tracer._interact", "Tracer._deposits", "DiffractionSampler._trace_batch"} <= functions, functions
+
+
+def test_radio_map_comparison_times_both_solvers_in_turn_and_keeps_each_ones_fastest(monkeypatch):
+    """ckm_solver._against_radio_map with scripted clocks: after the warm calls the one-pass and
+    RadioMapSolver are called in turn SIDE_BY_SIDE_ROUNDS times, and the time ratio is the fastest
+    one-pass call over the fastest RadioMapSolver call at the same rays (a slow spell of the
+    machine in one solver's warm call no longer decides it); --quick (repeats 0) calls neither
+    again."""
+    from benchmarks import ckm_solver as cs
+
+    g = np.full(4, -80.0)
+
+    def run(clock, repeats, rounds_expected):
+        calls = []
+
+        def one_pass():
+            calls.append("one_pass")
+
+        def radio_map_call(n):
+            calls.append("rms")
+            return g
+
+        def timed(fn):
+            out = fn()
+            return out, next(clock[calls[-1]])
+
+        monkeypatch.setattr(cs, "_timed", timed)
+        monkeypatch.setattr(cs, "whole_cell_db", lambda m: g)
+        radio_map = cs._memo(lambda n: cs._warm(lambda: radio_map_call(n), repeats))
+        out = cs._against_radio_map(one_pass, radio_map, 10**7, 4, 9.0, repeats=repeats,
+                                    radio_map_call=radio_map_call)
+        assert out["side_by_side_rounds"] == rounds_expected
+        return out, calls
+
+    assert cs.SIDE_BY_SIDE_ROUNDS == 2
+    # one-pass: compile 9, warm 12, then 8 and 10 in turn with RadioMapSolver's compile 6, warm 7,
+    # then 5.5 and 6.5; last RadioMapSolver at its default samples (compile and warm: 3, 2)
+    out, calls = run({"one_pass": iter([9.0, 12.0, 8.0, 10.0]), "rms": iter([6.0, 7.0, 5.5, 6.5, 3.0, 2.0])}, 1, 2)
+    assert calls == ["one_pass", "one_pass", "rms", "rms", "one_pass", "rms", "one_pass", "rms", "rms", "rms"]
+    assert out["one_pass_unpolarised"]["warm_s"] == 8.0 and out["at_one_pass_rays"]["warm_s"] == 5.5
+    assert out["one_pass_over_radio_map_time"] == pytest.approx(8.0 / 5.5, abs=1e-3)
+    # --quick: first calls only, as before
+    out, calls = run({"one_pass": iter([9.0]), "rms": iter([6.0, 3.0])}, 0, 0)
+    assert calls == ["one_pass", "rms", "rms"] and out["one_pass_over_radio_map_time"] == pytest.approx(1.5)
