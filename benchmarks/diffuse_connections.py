@@ -28,7 +28,7 @@ from benchmarks.bench import machine
 from benchmarks.ckm_variants import SceneRuns
 from simart_pipeline import engine
 from simart_pipeline.ckm import one_pass as op
-from simart_pipeline.ckm.moments import too_few_for_power
+from simart_pipeline.ckm.moments import too_few_hits
 
 SCENES = ("street_canyon", "urban")
 CONNECTIONS = (0.0, 0.5, 1.0)
@@ -55,7 +55,7 @@ def _errors(layers: dict, ref: dict, cells: np.ndarray) -> dict:
 
 def _few_effective_hits(m: op.OnePassMoments) -> int:
     """Cells outside the mask with a ray hit but an effective count (Kish) below ``min_hits_for_power``."""
-    few = too_few_for_power(m, 1, float(m.min_count_for_power))  # the layers' Kish rule
+    few = too_few_hits(m, 1, float(m.min_count_for_power))  # the layers' Kish rule
     return int(np.sum((m.count >= 1) & ~m.masked & few))
 
 

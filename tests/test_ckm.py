@@ -480,3 +480,63 @@ def test_cells_with_few_ray_hits_hold_no_gain_toa_or_beams():
     assert np.isnan(L["asa_deg"]).all()  # 5 hits: still below min_count_for_spread
     # The default keeps every cell that something reached (reference mode: each count is a path).
     assert np.isfinite(mom.layers_from_moments(m)["path_gain_db"]).all()
+
+
+def test_spreads_need_effective_hits_where_one_ray_carries_the_cell():
+    """Known answer: two cells of 12 ray hits each with the same delays, one of equal powers
+    (effective count 12), one where a single hit carries 99 % of the power (effective count about
+    1.02). With min_count_for_spread 10 both hold a delay spread (the second one's nearly that one
+    ray's: a tenth of the first's); with min_effective_count_for_spread 10 only the first does,
+    and its delay spread is the closed form; path gain, ToA and beams stay in both."""
+    from simart_pipeline.ckm import moments as mom
+
+    delays = 1e-6 + 1e-9 * np.arange(12)  # 12 hits 1 ns apart
+    powers = np.array([np.full(12, 1e-10), np.r_[0.99e-9, np.full(11, 0.01e-9 / 11)]])
+    m = mom.CellMoments.zeros((2,), num_beams=2)
+    m.count[:] = 12
+    m.power[:] = powers.sum(1)
+    m.power_sq[:] = (powers**2).sum(1)
+    m.min_delay_s[:] = delays[0]
+    m.tau0_s[:] = delays[0]
+    m.p_excess_delay_s[:] = (powers * (delays - delays[0])).sum(1)
+    m.p_excess_delay2_s2[:] = (powers * (delays - delays[0]) ** 2).sum(1)
+    m.p_cos[:, :] = m.power[:, None]
+    m.beam_power[:] = m.power[:, None] * [1.0, 2.0]
+    eff = m.power**2 / m.power_sq
+    assert eff[0] == pytest.approx(12.0) and eff[1] == pytest.approx(1.0 / (0.99**2 + 0.01**2 / 11))
+    loose = mom.layers_from_moments(m, min_count_for_spread=10, min_count_for_power=5)
+    assert np.isfinite(loose["rms_delay_spread_s"]).all()
+    assert loose["rms_delay_spread_s"][1] < 0.2 * loose["rms_delay_spread_s"][0]
+    L = mom.layers_from_moments(m, min_count_for_spread=10, min_count_for_power=5,
+                                min_effective_count_for_spread=10.0)
+    assert L["rms_delay_spread_s"][0] == pytest.approx(1e-9 * np.sqrt((12**2 - 1) / 12))  # uniform, 1 ns apart
+    for name in ("rms_delay_spread_s", "asa_deg", "zsd_deg", "mean_azimuth_arrival_deg"):
+        assert np.isfinite(L[name][0]) and np.isnan(L[name][1]), name
+    for name in ("path_gain_db", "toa_s", "mean_delay_s", "best_beam_gain_db"):
+        assert np.isfinite(L[name]).all(), name
+    assert L["enough_hits"].all() and L["best_beam"].tolist() == [1, 1]
+
+
+def test_ckm_min_effective_hits_for_spread_masks_the_spreads_by_the_effective_count_layer(tiny_built, tiny_scene):
+    """ckm.min_effective_hits_for_spread reaches the fast-mode layers: with the config's default
+    (10) the delay and angle spreads and mean angles hold a value exactly where the hit count
+    reaches min_hits_for_spread and the stored effective_count reaches 10; with 1 wherever the hit
+    count does; gain and ToA are the same either way; the layer's attrs name both settings."""
+    cfg, geom, _, out = tiny_built
+    fast = lambda raw: raw["ckm"].update(tiles=[1, 1], size_m=[80.0, 60.0], cell_size_m=4.0, mode="fast",  # noqa: E731
+                                         num_rays=300_000)
+    default = _cfg(tiny_scene, fast)
+    assert default.ckm.min_effective_hits_for_spread == 10.0
+    loose = _cfg(tiny_scene, lambda raw: (fast(raw), raw["ckm"].update(min_effective_hits_for_spread=1.0)))
+    radio = RadioScene.from_config(meshes.radio_scene_file(out), default)
+    a, b = tile_layers(radio, default, geom, "r0c0"), tile_layers(radio, loose, geom, "r0c0")
+    enough, count, ess = a["enough_hits"].values, a["count"].values, a["effective_count"].values
+    by_count = enough & (count >= default.ckm.min_hits_for_spread)
+    expected = by_count & (ess >= 10.0)
+    assert expected.sum() > 20 and (by_count & ~expected).sum() > 0  # the rule bites on this scene
+    for name in ("rms_delay_spread_s", "asa_deg", "zsa_deg", "mean_azimuth_arrival_deg"):
+        np.testing.assert_array_equal(np.isfinite(a[name].values), expected, err_msg=name)
+        np.testing.assert_array_equal(np.isfinite(b[name].values), by_count, err_msg=name)
+    np.testing.assert_array_equal(a["path_gain_db"].values, b["path_gain_db"].values)
+    assert "min_effective_hits_for_spread" in a["rms_delay_spread_s"].attrs["nan_means"]
+    assert "min_effective_hits_for_spread" in a["mean_azimuth_arrival_deg"].attrs["nan_means"]

@@ -31,6 +31,10 @@ from simart_pipeline.scene.solids import Solids, inside_solids
 from simart_pipeline.vocabulary import SPEED_OF_LIGHT_MPS
 
 MASKED = "cell masked (inside a building or outside the region), or nothing reached it"
+# the layers that need a second moment's sampling (moments.too_few_hits with the spread minimums)
+SPREAD_LAYERS = ("rms_delay_spread_s", *mom.SPREAD_NAMES.values(), *mom.MEAN_ANGLE_NAMES.values())
+SPREAD_MASKED = ("; or, fast mode, fewer ray hits than ckm.min_hits_for_spread or fewer effective hits "
+                 "than ckm.min_effective_hits_for_spread (one or two rays carry the cell's sums)")
 PROPAGATION_FLOAT_LAYERS = ("path_gain_db", "path_loss_db", "path_gain_coherent_db", "rx_power_dbm",
                             "los_power_fraction", "toa_s", "mean_delay_s", "rms_delay_spread_s",
                             *mom.SPREAD_NAMES.values(), *mom.MEAN_ANGLE_NAMES.values(),
@@ -148,6 +152,7 @@ def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, t
             codebook=weights, tx_ant_positions_m=tx_ant_positions_m, batch_rays=cfg.ckm.batch_rays,
             min_hits_for_spread=cfg.ckm.min_hits_for_spread, min_hits_for_power=cfg.ckm.min_hits_for_power,
             min_effective_hits_for_power=cfg.ckm.min_effective_hits_for_power,
+            min_effective_hits_for_spread=cfg.ckm.min_effective_hits_for_spread,
             max_footprint_cells=cfg.ckm.max_footprint_cells, cell_size_m=cfg.ckm.cell_size_m,
             diffraction_resample_factor=cfg.ckm.diffraction_resample_factor,
             lattice_resample_factor=cfg.ckm.lattice_resample_factor,
@@ -206,7 +211,8 @@ def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_
     fast = cfg.ckm.mode == "fast"
     layers = mom.layers_from_moments(m, cfg.ckm.min_hits_for_spread if fast else 1,
                                      cfg.ckm.min_hits_for_power if fast else 1,
-                                     cfg.ckm.min_effective_hits_for_power if fast else 1.0)
+                                     cfg.ckm.min_effective_hits_for_power if fast else 1.0,
+                                     cfg.ckm.min_effective_hits_for_spread if fast else 1.0)
     # Link layers and the coherent gain follow the power layers: none where too few rays arrived.
     has = layers["enough_hits"]
     layers["path_gain_coherent_db"] = np.where(has, power_db(coherent), np.nan)
@@ -243,8 +249,7 @@ def layers_dataset(layers: dict, cfg: SceneConfig, grid: TileGrid, B: int) -> xr
             data[name] = (d4 + ("beam",), v.astype(np.float32), {**attrs, "nan_means": MASKED})
             continue
         if v.dtype.kind == "f":
-            attrs.setdefault("nan_means", MASKED + ("; or too few rays/paths for a stable value"
-                                                    if name in mom.SPREAD_NAMES.values() else
+            attrs.setdefault("nan_means", MASKED + (SPREAD_MASKED if name in SPREAD_LAYERS else
                                                     "; or fewer ray hits than ckm.min_hits_for_power (fast mode)"))
             v = v.astype(np.float64 if name.endswith("_s") else np.float32)
         data[name] = (d4, v, attrs)

@@ -116,20 +116,25 @@ def path_moments(power: np.ndarray, delay_s: np.ndarray, valid: np.ndarray, los:
         power_sq=path_sum(p * p))
 
 
-def too_few_for_power(m: CellMoments, min_count_for_power: int = 1,
-                      min_effective_count_for_power: float = 1.0) -> np.ndarray:
-    """Cells whose gain is not trusted: fewer than ``min_count_for_power`` hits or, with
-    ``min_effective_count_for_power`` above 1, an effective count ``(sum p)^2 / sum p^2`` below
-    it (one ray carries the gain). The one rule of ``enough_hits`` and of the adaptive pass."""
-    few = m.count < min_count_for_power
-    if min_effective_count_for_power > 1.0 and m.power_sq is not None:
-        few = few | (m.power**2 < min_effective_count_for_power * m.power_sq)
+def too_few_hits(m: CellMoments, min_count: int = 1, min_effective_count: float = 1.0) -> np.ndarray:
+    """Cells whose sums a layer does not trust: fewer than ``min_count`` ray hits or, with
+    ``min_effective_count`` above 1, an effective count ``(sum p)^2 / sum p^2`` (Kish) below it:
+    many hits, but one or two rays carry the sum. The one rule of ``enough_hits`` (path gain,
+    ToA, LoS, beams; and of the adaptive pass) and of the spreads and mean angles, each with its
+    own minimums (``ckm.min_hits_for_power`` / ``min_effective_hits_for_power``,
+    ``ckm.min_hits_for_spread`` / ``min_effective_hits_for_spread``). A second moment needs more:
+    Munich at 1e7 rays, every mechanism, the cells below 10 effective hits hold a delay spread 45
+    ns (p50) from the same solver's at 1e8 rays, the others 4 ns (docs/ckm-one-pass.md, "Session
+    37")."""
+    few = m.count < min_count
+    if min_effective_count > 1.0 and m.power_sq is not None:
+        few = few | (m.power**2 < min_effective_count * m.power_sq)
     return few
 
 
 def layers_from_moments(m: CellMoments, min_count_for_spread: int = 1,
-                        min_count_for_power: int = 1, min_effective_count_for_power: float = 1.0
-                        ) -> dict[str, np.ndarray]:
+                        min_count_for_power: int = 1, min_effective_count_for_power: float = 1.0,
+                        min_effective_count_for_spread: float = 1.0) -> dict[str, np.ndarray]:
     """Layer arrays (grid shape ``S``) from moments; NaN where a layer has no value.
 
     ``has_path``: anything arrived. ``enough_hits``: something arrived and ``count`` reaches
@@ -138,11 +143,12 @@ def layers_from_moments(m: CellMoments, min_count_for_spread: int = 1,
     fast solver's guard; 1 in reference mode, where each count is an exact path). With
     ``min_effective_count_for_power`` above 1, a cell whose ``effective_count`` (Kish) stays below
     it is masked the same way: many hits, but one ray carries the gain. Spreads and mean angles
-    also need ``min_count_for_spread``.
+    also need ``min_count_for_spread`` hits and an effective count of
+    ``min_effective_count_for_spread`` (:func:`too_few_hits`).
     """
     has = m.power > 0
     g = np.where(has, m.power, 1.0)
-    enough = has & ~too_few_for_power(m, min_count_for_power, min_effective_count_for_power)
+    enough = has & ~too_few_hits(m, min_count_for_power, min_effective_count_for_power)
     out: dict[str, np.ndarray] = {"has_path": has, "enough_hits": enough, "count": m.count}
     if m.power_sq is not None:  # Kish's effective sample size of the cell's sum
         out["effective_count"] = np.where(has, m.power**2 / np.where(m.power_sq > 0, m.power_sq, 1.0), np.nan)
@@ -153,7 +159,7 @@ def layers_from_moments(m: CellMoments, min_count_for_spread: int = 1,
     out["toa_s"] = np.where(enough & np.isfinite(m.min_delay_s), m.min_delay_s, np.nan)
     mean_excess = m.p_excess_delay_s / g
     var = np.maximum(m.p_excess_delay2_s2 / g - mean_excess**2, 0.0)
-    stable = enough & (m.count >= min_count_for_spread)
+    stable = enough & ~too_few_hits(m, min_count_for_spread, min_effective_count_for_spread)
     out["mean_delay_s"] = np.where(enough, m.tau0_s + mean_excess, np.nan)
     out["rms_delay_spread_s"] = np.where(stable, np.sqrt(var), np.nan)
     for k, name in enumerate(ANGLES):

@@ -63,8 +63,8 @@ docs/ckm-one-pass.md "Session 29").
 
 Cells are masked (zero moments) where the caller says ``indoor`` or where less than
 ``min_outdoor_fraction`` of their area is outside buildings; the others have their sums divided by
-that share. Spreads and mean angles need ``min_hits_for_spread`` ray hits
-(:meth:`OnePassMoments.layers`).
+that share. Spreads and mean angles need ``min_hits_for_spread`` ray hits and an effective count
+(Kish) of ``min_effective_hits_for_spread`` (:meth:`OnePassMoments.layers`).
 
 Handled: line of sight, specular reflection, diffuse reflection and refraction, up to
 ``max_depth`` interactions, and first-order wedge and edge diffraction
@@ -93,7 +93,7 @@ import numpy as np
 import pandas as pd
 
 from simart_pipeline.ckm.compiled import compiled as _compiled
-from simart_pipeline.ckm.moments import CellMoments, layers_from_moments, too_few_for_power
+from simart_pipeline.ckm.moments import CellMoments, layers_from_moments, too_few_hits
 from simart_pipeline.ckm.diffraction import STRETCHES_PER_PAIR
 from simart_pipeline.ckm.gather import (DEFAULT_GATHER_AUTO_MIN_SHARE, DEFAULT_GATHER_BELOW_EFFECTIVE_HITS,
                                         DEFAULT_GATHER_DIRECTIONS_PER_POINT, DEFAULT_PHOTON_RAY_SHARE,
@@ -115,6 +115,7 @@ DEFAULT_BATCH_RAYS = 1 << 20  # about 0.5 GB of ray state on the LLVM backend
 # the LLVM backend's 0.5 GB per million rays holds there
 DEFAULT_BATCH_RAYS_GPU = 1 << 22
 DEFAULT_MIN_HITS_FOR_SPREAD = 10
+DEFAULT_MIN_EFFECTIVE_HITS_FOR_SPREAD = 10.0  # config.Ckm.min_effective_hits_for_spread's default
 DEFAULT_MIN_HITS_FOR_POWER = 5  # config.Ckm.min_hits_for_power's default; the reasoning is there
 DEFAULT_MIN_OUTDOOR_FRACTION = 0.5
 DEFAULT_MAX_FOOTPRINT_CELLS = 8.0
@@ -152,6 +153,7 @@ class OnePassMoments(CellMoments):
     min_count_for_spread: int = 1
     min_count_for_power: int = 1
     min_effective_count_for_power: float = 1.0  # Kish effective count (layers_from_moments)
+    min_effective_count_for_spread: float = 1.0  # likewise, for spreads and mean angles
     outdoor_fraction: np.ndarray | None = None
     masked: np.ndarray | None = None  # [num_heights, ny, nx] bool: indoor or too little outdoor area
     num_rays: int = 0                 # rays of the pass (0: a merge of passes)
@@ -163,7 +165,7 @@ class OnePassMoments(CellMoments):
         """:func:`layers_from_moments` with this run's ``min_count_for_spread`` and
         ``min_count_for_power`` (the pipeline's ckm/layers.py applies the same config values)."""
         return layers_from_moments(self, self.min_count_for_spread, self.min_count_for_power,
-                                   self.min_effective_count_for_power)
+                                   self.min_effective_count_for_power, self.min_effective_count_for_spread)
 
     def merge(self, other: "CellMoments") -> "OnePassMoments":
         """Sums of two disjoint sets of rays over the same grid (e.g. two solver runs)."""
@@ -174,6 +176,7 @@ class OnePassMoments(CellMoments):
                               min_count_for_spread=self.min_count_for_spread,
                               min_count_for_power=self.min_count_for_power,
                               min_effective_count_for_power=self.min_effective_count_for_power,
+                              min_effective_count_for_spread=self.min_effective_count_for_spread,
                               outdoor_fraction=self.outdoor_fraction, masked=self.masked)
 
 
@@ -820,6 +823,7 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                      codebook: np.ndarray | None = None, tx_ant_positions_m: np.ndarray | None = None,
                      batch_rays: int | None = None, min_hits_for_spread: int = DEFAULT_MIN_HITS_FOR_SPREAD,
                      *, min_hits_for_power: int = DEFAULT_MIN_HITS_FOR_POWER, min_effective_hits_for_power: float = 1.0,
+                     min_effective_hits_for_spread: float = DEFAULT_MIN_EFFECTIVE_HITS_FOR_SPREAD,
                      cell_size_m: float | None = None, indoor: np.ndarray | None = None,
                      min_outdoor_fraction: float = DEFAULT_MIN_OUTDOOR_FRACTION,
                      rx_polarization: str | None = None, los: bool = True, specular_reflection: bool = True,
@@ -855,7 +859,8 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
     :param min_hits_for_spread: hits a cell needs for spreads and mean angles
         (:meth:`OnePassMoments.layers`); ``min_hits_for_power``: for path gain, ToA, LoS and beams;
         ``min_effective_hits_for_power``: the effective count (Kish, ``(sum p)^2 / sum p^2``)
-        they also need (1: no such condition)
+        they also need (1: no such condition); ``min_effective_hits_for_spread``: the effective
+        count the spreads and mean angles need (:func:`~simart_pipeline.ckm.moments.too_few_hits`)
     :param indoor: optional bool mask, broadcastable to ``[num_heights, ny, nx]``: cells to mask
     :param min_outdoor_fraction: cells with less of their area outside buildings
         (:func:`outdoor_fraction`) are masked; the others have their sums divided by that share
@@ -1042,6 +1047,7 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                           min_count_for_spread=int(min_hits_for_spread),
                           min_count_for_power=int(min_hits_for_power),
                           min_effective_count_for_power=float(min_effective_hits_for_power),
+                          min_effective_count_for_spread=float(min_effective_hits_for_spread),
                           outdoor_fraction=frac, masked=masked,
                           num_rays=int(num_rays), second_pass=second_pass, lattice_second_pass=lattice_pass,
                           diffuse_gather=gather)
@@ -1055,10 +1061,10 @@ def default_batch_rays(variant: str) -> int:
 
 def _undersampled_cells(acc: _Accumulator, masked, frac, min_hits: int, min_effective: float) -> np.ndarray:
     """Flat cells outside the mask with a ray hit but too few for a path gain (the layers' rule,
-    :func:`too_few_for_power`, on the accumulator's sums: the outdoor share scales power and
+    :func:`too_few_hits`, on the accumulator's sums: the outdoor share scales power and
     power squared alike, the effective count not)."""
     m = acc.summed()  # the device's sums come to the host here
-    few = too_few_for_power(m, min_hits, min_effective)
+    few = too_few_hits(m, min_hits, min_effective)
     return np.flatnonzero((m.count >= 1) & few & ~masked & (frac > 0))
 
 
@@ -1238,7 +1244,7 @@ def undersampled_fraction(m: OnePassMoments) -> float:
     (cells whose layers are masked for too few rays); 0 where nothing is reached."""
     reached = (m.count >= 1) & ~m.masked
     n = int(reached.sum())
-    few = too_few_for_power(m, m.min_count_for_power, m.min_effective_count_for_power)
+    few = too_few_hits(m, m.min_count_for_power, m.min_effective_count_for_power)
     return 0.0 if n == 0 else float((reached & few).sum() / n)
 
 
