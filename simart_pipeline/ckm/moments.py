@@ -116,6 +116,13 @@ def path_moments(power: np.ndarray, delay_s: np.ndarray, valid: np.ndarray, los:
         power_sq=path_sum(p * p))
 
 
+def effective_count(m: CellMoments) -> np.ndarray:
+    """Kish's effective sample size of each cell's sum, ``(sum p)^2 / sum p^2``: the hit count
+    where every ray tube carries the same power, 1 where one carries it all; 0 where nothing
+    arrived."""
+    return np.where(m.power_sq > 0, m.power**2 / np.where(m.power_sq > 0, m.power_sq, 1.0), 0.0)
+
+
 def too_few_hits(m: CellMoments, min_count: int = 1, min_effective_count: float = 1.0) -> np.ndarray:
     """Cells whose sums a layer does not trust: fewer than ``min_count`` ray hits or, with
     ``min_effective_count`` above 1, an effective count ``(sum p)^2 / sum p^2`` (Kish) below it:
@@ -151,7 +158,7 @@ def layers_from_moments(m: CellMoments, min_count_for_spread: int = 1,
     enough = has & ~too_few_hits(m, min_count_for_power, min_effective_count_for_power)
     out: dict[str, np.ndarray] = {"has_path": has, "enough_hits": enough, "count": m.count}
     if m.power_sq is not None:  # Kish's effective sample size of the cell's sum
-        out["effective_count"] = np.where(has, m.power**2 / np.where(m.power_sq > 0, m.power_sq, 1.0), np.nan)
+        out["effective_count"] = np.where(has, effective_count(m), np.nan)
     out["path_gain_db"] = np.where(enough, power_db(m.power), np.nan)
     out["path_loss_db"] = -out["path_gain_db"]
     out["los_power_fraction"] = np.where(enough, m.los_power / g, np.nan)

@@ -93,7 +93,7 @@ import numpy as np
 import pandas as pd
 
 from simart_pipeline.ckm.compiled import compiled as _compiled
-from simart_pipeline.ckm.moments import CellMoments, layers_from_moments, too_few_hits
+from simart_pipeline.ckm.moments import CellMoments, effective_count, layers_from_moments, too_few_hits
 from simart_pipeline.ckm.diffraction import STRETCHES_PER_PAIR
 from simart_pipeline.ckm.gather import (DEFAULT_GATHER_AUTO_MIN_SHARE, DEFAULT_GATHER_BELOW_EFFECTIVE_HITS,
                                         DEFAULT_GATHER_DIRECTIONS_PER_POINT, DEFAULT_PHOTON_RAY_SHARE,
@@ -1107,7 +1107,7 @@ def _gather_diffuse(acc: _Accumulator, radio, tracer: Tracer, grid, masked, frac
     from simart_pipeline.ckm.gather import diffuse_gather
 
     m = acc.summed()
-    effective = np.where(m.power_sq > 0, m.power**2 / np.where(m.power_sq > 0, m.power_sq, 1.0), 0.0)
+    effective = effective_count(m)
     # every few-hit cell, whatever makes its few hits: in Munich's far cells the rays' few large
     # deposits are specular or diffracted and the diffuse power from the walls beside the cell is
     # what they miss (taking only cells whose diffuse-last deposits make the noise, as the lattice's
