@@ -48,7 +48,7 @@ class Ckm(_Model):
     # 10, the hits a second moment needs, counted as effective hits: a cell with many hits of
     # which one or two carry the sum holds a spread that is mostly that ray's. Munich, every
     # mechanism, 1e7 rays against the same solver at 1e8: delay spread 8.7 ns p50 over every cell,
-    # 45 ns in the cells below 10 effective hits (41 % of them), 4.2 ns in the rest; angle spread
+    # 45 ns in the cells below 10 effective hits (42 % of them), 4.2 ns in the rest; angle spread
     # of arrival 2.4 -> 1.2 deg. It masks the spreads of 8 % of the street canyon's cells with a
     # spread, 22 % of urban's, 42 % of Munich's at 1e7 rays (docs/ckm-one-pass.md, "Session 37").
     min_effective_hits_for_spread: float = Field(
