@@ -331,7 +331,10 @@ def ckm_passive(ds: xr.Dataset, cfg, rows: slice | None = None, cols: slice | No
 def ckm_tile(maps: dict[str, xr.Dataset], cfg, tile: str) -> CheckResult:
     """Tile ``tile`` is marked complete in every map of the scene; fractions of its cells that are
     masked (inside a building or outside the region, any height) and empty (traced, reached by no
-    station). A tile outside the scene's tiling passes with nothing to check."""
+    station), and of its traced cells those holding a path gain and a delay spread from some
+    station (fast mode masks each below its own minimum of ray hits: ``ckm.min_hits_for_power``,
+    ``min_hits_for_spread`` and their effective-count forms). A tile outside the scene's tiling
+    passes with nothing to check."""
     from simart_pipeline.ckm.grid import parse_tile_key, tile_slices
 
     sl = tile_slices(cfg.ckm, tile)
@@ -353,6 +356,10 @@ def ckm_tile(maps: dict[str, xr.Dataset], cfg, tile: str) -> CheckResult:
         meta[f"{name}_cells"] = int(masked.size)
         meta[f"{name}_masked_fraction"] = round(float(masked.mean()), 4)
         meta[f"{name}_empty_fraction"] = round(float(empty.mean()), 4)
+        traced = max(int((~masked).sum()), 1)
+        for layer, label in (("path_gain_db", "path_gain"), ("rms_delay_spread_s", "delay_spread")):
+            held = np.isfinite(t[layer].values).any(axis=0) & ~masked
+            meta[f"{name}_with_{label}_fraction"] = round(float(held.sum()) / traced, 4)
     if not maps:
         problems.append("the scene has no channel knowledge map")
     return CheckResult.of(problems, f"tile {tile} complete in {len(maps)} map(s)", meta)

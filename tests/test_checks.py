@@ -249,3 +249,16 @@ def test_ckm_tile_and_passivity(real):
     early["toa_s"] = early["toa_s"] * 0.5
     r = quality.ckm_passive(early, cfg, *sl)
     assert not r.passed and "toa_s before the line of sight" in r.description
+    # of the tile's traced cells, those where some station holds a path gain / a delay spread:
+    # one cell's spread taken from every station drops the fraction by exactly one cell
+    r = quality.ckm_tile(maps, cfg, "r0c0")
+    held, gain = r.metadata["sunny_with_delay_spread_fraction"], r.metadata["sunny_with_path_gain_fraction"]
+    assert 0 < held <= gain <= 1
+    traced = round((1 - r.metadata["sunny_masked_fraction"]) * r.metadata["sunny_cells"])
+    spread = dry["rms_delay_spread_s"].values  # bs, height, y, x
+    h, y, x = np.argwhere(np.isfinite(spread[:, :, sl[0], sl[1]]).any(axis=0))[0]
+    fewer = {n: ds.copy(deep=True) for n, ds in maps.items()}
+    fewer["sunny"]["rms_delay_spread_s"].values[:, h, sl[0].start + y, sl[1].start + x] = np.nan
+    r2 = quality.ckm_tile(fewer, cfg, "r0c0")
+    assert r2.metadata["sunny_with_delay_spread_fraction"] == pytest.approx(held - 1 / traced, abs=1e-4)
+    assert r2.metadata["sunny_with_path_gain_fraction"] == gain
