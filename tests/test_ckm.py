@@ -526,7 +526,9 @@ def test_ckm_min_effective_hits_for_spread_masks_the_spreads_by_the_effective_co
     fast = lambda raw: raw["ckm"].update(tiles=[1, 1], size_m=[80.0, 60.0], cell_size_m=4.0, mode="fast",  # noqa: E731
                                          num_rays=300_000)
     default = _cfg(tiny_scene, fast)
-    assert default.ckm.min_effective_hits_for_spread == 10.0
+    from simart_pipeline.ckm import one_pass as op
+
+    assert default.ckm.min_effective_hits_for_spread == 10.0 == op.DEFAULT_MIN_EFFECTIVE_HITS_FOR_SPREAD
     loose = _cfg(tiny_scene, lambda raw: (fast(raw), raw["ckm"].update(min_effective_hits_for_spread=1.0)))
     radio = RadioScene.from_config(meshes.radio_scene_file(out), default)
     a, b = tile_layers(radio, default, geom, "r0c0"), tile_layers(radio, loose, geom, "r0c0")
