@@ -72,17 +72,45 @@ def scene_problems(scene_dir: str | Path) -> tuple[SceneConfig | None, list[str]
             load_codebook(scene_dir / cfg.codebook.path, cfg.base_stations[0].array.num_antennas)
         except ValueError as exc:
             problems.append(f"{where}: codebook.path: {exc}")
-    ground = geom.of_class("ground")
-    if ground:
-        import shapely
-
-        extent = shapely.union_all([g.geometry for g in ground])
-        ckm = cfg.ckm
-        box = shapely.box(ckm.center_m[0] - ckm.size_m[0] / 2, ckm.center_m[1] - ckm.size_m[1] / 2,
-                          ckm.center_m[0] + ckm.size_m[0] / 2, ckm.center_m[1] + ckm.size_m[1] / 2)
-        if not box.intersects(extent):
-            problems.append(f"{where}: ckm: the grid does not overlap the scene's ground")
+    problems += _extent_problems(cfg, geom, where)
     return cfg, problems
+
+
+def _extent_problems(cfg: SceneConfig, geom, where: Path) -> list[str]:
+    """Base stations, waypoints and the CKM grid outside the scene's ground (x, y): nothing there to
+    stand on or reflect from, so their channels and cells would be computed in empty space."""
+    ground = geom.of_class("ground")
+    if not ground:  # a source without ground (a mesh or Sionna scene that has none)
+        return []
+    import shapely
+
+    extent = shapely.union_all([g.geometry for g in ground])
+    held = extent.buffer(EXTENT_TOLERANCE_M)
+    x0, y0, x1, y1 = (round(v, 1) for v in extent.bounds)
+    hint = _WIDER_SOURCE.get(cfg.source.kind)
+    beyond = f"beyond the scene's ground (x {x0} .. {x1} m, y {y0} .. {y1} m{'; ' + hint if hint else ''})"
+    problems = []
+    for i, b in enumerate(cfg.base_stations):
+        if not held.covers(shapely.Point(b.position_m[:2])):
+            problems.append(f"{where}: base_stations.{i}.position_m: {b.name} at {list(b.position_m)} lies {beyond}")
+    for i, p in enumerate(cfg.platforms):
+        for k, w in enumerate(getattr(p.trajectory, "waypoints_m", ())):
+            if not held.covers(shapely.Point(w[:2])):
+                problems.append(f"{where}: platforms.{i}.trajectory.waypoints_m.{k}: {list(w)} lies {beyond}")
+    ckm = cfg.ckm
+    box = shapely.box(ckm.center_m[0] - ckm.size_m[0] / 2, ckm.center_m[1] - ckm.size_m[1] / 2,
+                      ckm.center_m[0] + ckm.size_m[0] / 2, ckm.center_m[1] + ckm.size_m[1] / 2)
+    outside = box.difference(held).area / box.area
+    if outside > 0:
+        problems.append(f"{where}: ckm: {100 * outside:.3g} % of the grid (x {box.bounds[0]:g} .. {box.bounds[2]:g} m, "
+                        f"y {box.bounds[1]:g} .. {box.bounds[3]:g} m) lies {beyond}: move ckm.center_m or "
+                        "shrink ckm.size_m")
+    return problems
+
+
+EXTENT_TOLERANCE_M = 0.01  # an OSM box's edges are parallels: curved in the local frame, by millimetres
+_WIDER_SOURCE = {"osm": "the extract's area, or source.bbox_deg where set",
+                 "procedural": "source.blocks, block_size_m and street_width_m set its size"}
 
 
 def _replay_problems(platform, i: int, scene_dir: Path, geom, where: Path) -> list[str]:

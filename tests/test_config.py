@@ -88,6 +88,33 @@ def test_devices_inside_buildings_are_problems(tiny_scene):
     assert cfg.name == "tiny"
 
 
+def test_devices_and_grid_beyond_the_ground_are_problems(tiny_scene):
+    import shapely
+
+    from simart_pipeline.scene import source
+
+    cfg = load_scene_config(tiny_scene)
+    ground = shapely.union_all([g.geometry for g in source.build_source_geometry(cfg, tiny_scene).of_class("ground")])
+    x0, y0, x1, y1 = ground.bounds
+    ckm_w, ckm_h = cfg.ckm.size_m
+    assert ckm_h < y1 - y0  # the grid's rows stay inside: half of it beyond x1 is half its area
+
+    def beyond(raw):
+        raw["base_stations"][0]["position_m"] = [x1 + 1.0, 0.0, 5.0]
+        raw["base_stations"][1]["position_m"] = [x1, 0.0, 5.0]  # on the edge: held
+        raw["platforms"][0]["trajectory"]["waypoints_m"][1] = [0.0, y0 - 2.0, 1.5]
+        raw["ckm"]["center_m"] = [x1, (y0 + y1) / 2]
+
+    _edit(tiny_scene, beyond)
+    _, problems = scene_problems(tiny_scene)
+    ours = [p for p in problems if "beyond the scene's ground" in p]
+    assert len(ours) == 3, problems
+    assert "base_stations.0.position_m" in ours[0] and f"{x1 + 1.0}" in ours[0]
+    assert "platforms.0.trajectory.waypoints_m.1" in ours[1]
+    assert "ckm: 50 % of the grid" in ours[2] and "ckm.size_m" in ours[2]
+    assert all(str(tiny_scene / "scene.yaml") in p for p in ours)
+
+
 def test_config_digest_is_stable_and_sensitive(tiny_scene):
     a = load_scene_config(tiny_scene).digest()
     assert a == load_scene_config(tiny_scene).digest()

@@ -135,6 +135,47 @@ def test_origin_defaults_to_the_extract_centre(extracts):
     assert ground.centroid.distance(shapely.Point(0, 0)) < 5.0 + 0.1 * np.sqrt(ground.area)
 
 
+def _enu_box(lon_lat: np.ndarray, origin) -> shapely.Polygon:
+    e, n, _ = pymap3d.geodetic2enu(lon_lat[:, 1], lon_lat[:, 0], 0.0, origin[0], origin[1], 0.0)
+    return shapely.box(e.min(), n.min(), e.max(), n.max())
+
+
+def test_an_extract_without_a_header_box_spans_its_nodes(tmp_path):
+    # One small building in the south-west corner, a road 400 m away to the north-east and a lone node
+    # beyond it: no <bounds>, as Overpass writes them. The buildings' box would drop the road.
+    nodes = {1: (11.0000, 48.0000), 2: (11.0002, 48.0000), 3: (11.0002, 48.0002), 4: (11.0000, 48.0002),
+             5: (11.0040, 48.0030), 6: (11.0050, 48.0030), 7: (11.0060, 48.0045)}
+    xml = ['<?xml version="1.0" encoding="UTF-8"?>', '<osm version="0.6" generator="Overpass API">']
+    xml += [f'<node id="{i}" lat="{lat}" lon="{lon}" version="1"/>' for i, (lon, lat) in nodes.items()]
+    xml += ['<way id="10" version="1"><nd ref="1"/><nd ref="2"/><nd ref="3"/><nd ref="4"/><nd ref="1"/>'
+            '<tag k="building" v="yes"/></way>',
+            '<way id="11" version="1"><nd ref="5"/><nd ref="6"/><tag k="highway" v="residential"/></way>', '</osm>']
+    path = tmp_path / "overpass.osm"
+    path.write_text("\n".join(xml))
+    geom = read_extract(path)
+    ll = np.array(list(nodes.values()))
+    assert geom.origin[:2] == pytest.approx(((ll[:, 1].min() + ll[:, 1].max()) / 2,
+                                             (ll[:, 0].min() + ll[:, 0].max()) / 2), abs=1e-12)
+    (ground,) = geom.of_class("ground")
+    # the nodes' box in the local frame (its edges are parallels and meridians: curved by mm)
+    assert ground.geometry.buffer(0.01).covers(_enu_box(ll, geom.origin))
+    assert ground.geometry.area == pytest.approx(_enu_box(ll, geom.origin).area, rel=1e-4)
+    (road,) = geom.of_class("road")
+    e, n, _ = pymap3d.geodetic2enu(ll[4:6, 1], ll[4:6, 0], 0.0, geom.origin[0], geom.origin[1], 0.0)
+    assert road.geometry.length == pytest.approx(np.hypot(*np.diff([e, n], axis=1)[:, 0]), rel=1e-9)  # whole
+
+
+def test_taipei_ground_holds_every_node_of_the_extract(extracts):
+    # taipei.osm (Overpass, no header box): its 61 buildings cover a third of the area its roads do
+    _, geom = extracts["taipei.osm"]
+    ll = np.array([(n.location.lon, n.location.lat) for n in osmium.FileProcessor(str(OSM / "taipei.osm"), osmium.osm.NODE)
+                   if n.location.valid()])
+    (ground,) = geom.of_class("ground")
+    assert ground.geometry.buffer(0.01).covers(_enu_box(ll, geom.origin))
+    bld = shapely.bounds([f.geometry for f in geom.of_class("building")])
+    assert shapely.box(*bld[:, :2].min(0), *bld[:, 2:].max(0)).area < 0.5 * ground.geometry.area
+
+
 def test_bbox_clips_roads_and_keeps_whole_buildings_inside():
     bbox = (24.940, 60.166, 24.948, 60.172)
     geom = read_extract(OSM / "helsinki.osm.pbf", bbox_deg=bbox)

@@ -5,12 +5,16 @@
   expansion ("billion laughs") are errors, never expanded; malformed XML is an error naming the file.
 - **Projection**: every node of every kept feature is projected in one vectorised call
   (``pymap3d.geodetic2enu``, WGS84, exact) around the world origin, by default the extract's centre
-  (the bounding box's, else the file header's, else the buildings'). Nodes are taken on the
-  ellipsoid at the origin's altitude and only east/north are kept: the ground is the plane z = 0
-  (the Earth's curvature would put it 8 cm lower 1 km away).
+  (the bounding box's, else the file header's, else that of every node the file holds). Nodes are
+  taken on the ellipsoid at the origin's altitude and only east/north are kept: the ground is the
+  plane z = 0 (the Earth's curvature would put it 8 cm lower 1 km away).
 - **Clipping**: with a bounding box, buildings whose footprint's representative point lies inside
   are kept whole (a cut building would get a wall that does not exist); roads and land cover are
   cut at the box; the ground is the box.
+- **Extent** without a bounding box: the file header's box, else the box of every node the file
+  holds (an Overpass extract has no header box, and its nodes fill the area it was cut from; the
+  buildings' box would drop the roads and ground of an area where few buildings are mapped), grown
+  to the buildings' where one overhangs it.
 - **Buildings** (Simple 3D Buildings): heights from ``height``/``min_height`` (with units), else
   ``building:levels`` (+ ``roof:levels``) and ``building:min_level`` times the storey height, else
   the default; ``roof:shape`` (flat, gabled, hipped, pyramidal, skillion; others approximated),
@@ -160,6 +164,21 @@ def _header_box(path: Path):
     return (box.bottom_left.lon, box.bottom_left.lat, box.top_right.lon, box.top_right.lat)
 
 
+def _node_box(path: Path):
+    """(min_lon, min_lat, max_lon, max_lat) of every located node of the file, or None."""
+    import osmium
+
+    lon_min = lat_min = np.inf
+    lon_max = lat_max = -np.inf
+    for n in osmium.FileProcessor(str(path), osmium.osm.NODE):
+        loc = n.location
+        if loc.valid():
+            lon, lat = loc.lon, loc.lat
+            lon_min, lon_max = min(lon_min, lon), max(lon_max, lon)
+            lat_min, lat_max = min(lat_min, lat), max(lat_max, lat)
+    return None if lon_min > lon_max else (lon_min, lat_min, lon_max, lat_max)
+
+
 def _has_any_object(path: Path) -> bool:
     import osmium
 
@@ -190,7 +209,7 @@ def read_extract(path: str | Path, origin: tuple[float, float, float] | None = N
 
     :param path: ``.osm`` (XML, optionally ``.gz``/``.bz2``) or ``.osm.pbf``
     :param origin: (latitude deg, longitude deg, altitude m) of the world frame; None: the
-        extract's centre (the bounding box's, else the header's, else the buildings') at altitude 0
+        extract's centre (the bounding box's, else the header's, else its nodes') at altitude 0
     :param bbox_deg: (min_lon, min_lat, max_lon, max_lat) to clip to; None: the whole extract
     :raises OsmReadError: unreadable, malformed or hostile file, empty extract, no buildings
     """
@@ -200,8 +219,9 @@ def read_extract(path: str | Path, origin: tuple[float, float, float] | None = N
     if not path.is_file():
         raise OsmReadError(f"{path}: no such file")
     try:
-        header = _header_box(path)
         raw = _read(path)
+        # The extract's own box: its header's, else its nodes' (not needed where a box is given)
+        extract_box = None if bbox_deg is not None else (_header_box(path) or _node_box(path))
     except RuntimeError as exc:  # libosmium: XML syntax, entities, unknown format, bad PBF
         raise OsmReadError(f"{path}: not a readable OSM file: {exc}") from None
     warnings: list[str] = []
@@ -224,7 +244,7 @@ def read_extract(path: str | Path, origin: tuple[float, float, float] | None = N
     # The origin and the extent, in lon/lat.
     bld_ll = np.concatenate([r.rings[0][0] for r in buildings])
     bld_box = (*bld_ll.min(0), *bld_ll.max(0))
-    centre_box = bbox_deg or header or bld_box
+    centre_box = bbox_deg or extract_box or bld_box
     if origin is None:
         origin = ((centre_box[1] + centre_box[3]) / 2, (centre_box[0] + centre_box[2]) / 2, 0.0)
     lat0, lon0, alt0 = origin
@@ -237,8 +257,8 @@ def read_extract(path: str | Path, origin: tuple[float, float, float] | None = N
     if bbox_deg is not None:
         box_ring = _densified_box(bbox_deg)
         arrays.append(box_ring)
-    elif header is not None:
-        arrays.append(_densified_box(header))
+    elif extract_box is not None:
+        arrays.append(_densified_box(extract_box))
     sizes = np.array([len(a) for a in arrays])
     ll = np.concatenate(arrays)
     e, n, _ = pymap3d.geodetic2enu(ll[:, 1], ll[:, 0], np.full(len(ll), alt0), lat0, lon0, alt0)
@@ -251,7 +271,7 @@ def read_extract(path: str | Path, origin: tuple[float, float, float] | None = N
             polys.append([[next(it) for _ in poly] for poly in r.rings])
         else:
             polys.append(next(it))
-    frame_box = Polygon(next(it)) if (bbox_deg is not None or header is not None) else None
+    frame_box = Polygon(next(it)) if (bbox_deg is not None or extract_box is not None) else None
 
     out = SourceGeometry(origin=(float(lat0), float(lon0), float(alt0)), attribution=ATTRIBUTION,
                          warnings=warnings)
