@@ -151,6 +151,29 @@ def test_region_writes_are_checked_like_every_store(tmp_path):
     assert (after["count"].values[written] == 7).all() and (after["count"].values[~written] == -1).all()
 
 
+def test_chunked_store_metadata_is_consolidated_and_region_writes_keep_it_exact(tmp_path):
+    import json
+    import warnings
+
+    path = _region_store(tmp_path / "m.zarr")
+    part = xr.Dataset({"gain_db": (("y", "x"), np.full((2, 3), 2.5, np.float32), {"nan_means": "x", "extra": 1}),
+                       "count": (("y", "x"), np.full((2, 3), 3, np.int16)), "done": (("y", "x"), np.ones((2, 3), bool))})
+    stores.write_region(part, path, {"y": slice(0, 2), "x": slice(3, 6)}, chunks={"y": 2, "x": 3},
+                        sizes={"y": 4, "x": 6})
+    # every array's own metadata, after the write, is what the root's consolidated copy says
+    consolidated = json.loads((path / "zarr.json").read_text())["consolidated_metadata"]["metadata"]
+    names = sorted(p.parent.name for p in path.glob("*/zarr.json"))
+    assert sorted(consolidated) == names == ["count", "done", "gain_db", "x", "y"]
+    for name in names:
+        assert json.loads((path / name / "zarr.json").read_text()) == consolidated[name], name
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # xarray warns when it falls back to reading array by array
+        fast = xr.open_zarr(path).load()
+    assert fast.identical(xr.open_zarr(path, consolidated=False).load())
+    assert (fast["gain_db"].values[:2, 3:] == 2.5).all() and np.isnan(fast["gain_db"].values[2:]).all()
+    assert fast["gain_db"].attrs == {"units": "dB", "nan_means": "not written"}  # the region's attrs not written
+
+
 def test_chunked_store_needs_nan_meanings_and_keeps_an_equal_template(tmp_path):
     with pytest.raises(stores.StoreError, match="nan_means"):
         stores.create_chunked_store(tmp_path / "n.zarr", {"v": (("x",), (4,), np.float64, {}, (2,))},

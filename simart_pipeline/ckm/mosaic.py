@@ -152,4 +152,4 @@ def open_map(path: Path) -> xr.Dataset:
         stores.recover(path)  # a template swap killed half way may have left the map aside
     if not path.exists():
         raise FileNotFoundError(f"no channel knowledge map at {path}: materialise ckm_layers first")
-    return xr.open_zarr(path, consolidated=False)
+    return xr.open_zarr(path, consolidated=stores.has_consolidated_metadata(path))
