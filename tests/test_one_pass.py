@@ -354,6 +354,34 @@ def test_one_wall_reflects_with_the_itu_slab_te_tm_coefficients(tmp_path, tx_pol
         assert (np.abs(refl / f[pol].mean(-1) - 1) < _mc_bound(m.count[0], f[pol])).all(), pol
 
 
+@pytest.mark.parametrize("sampled", [False, True])
+@pytest.mark.parametrize("wall_x", [12.0, 12.5])
+def test_grazing_reflections_deposit_nothing_behind_the_wall_and_nothing_before_the_line_of_sight(
+        tmp_path, sampled, wall_x):
+    # A metal wall across the whole scene and a transmitter 10 cm above the grid plane: the rays it
+    # reflects leave it almost level, so their footprints on the plane are stretched to the cap
+    # (8 cells) along the ray. Nothing reaches behind the wall. A footprint that reached back behind
+    # the ray's start put power there, with the image source's delay: before the line of sight.
+    # At x = 12 the wall lies on a cell boundary; at 12.5 the column [12, 14] straddles it, and a
+    # crossing in front of it takes the image source's distance to a centre behind it.
+    xml = _write_scene(tmp_path / "w", {"wall": (_wall(wall_x), "metal")}, 0.2)
+    radio = RadioScene.from_config(xml, _cfg())
+    tx = np.array([0.0, 0.0, 1.6])
+    x, y = _axes(2.0, 12, -6.0, 6, 2.0)  # x 2 .. 26 m: five columns in front of the wall, seven behind
+    m = op.one_pass_moments(radio, tx, np.zeros(3), x, y, np.array([1.5]), 100_000, 1,
+                            refraction=sampled)  # refraction on: the tracer's sampled interactions
+    power, count = m.power[0], m.count[0]
+    front = x + 1.0 <= wall_x
+    assert (count[:, front] > 0).all() and (power[:, front] > 0).all()
+    # the first column behind (a cell's width): a footprint still reaches it sideways, not farther
+    far = x - 1.0 >= wall_x + 2.0
+    assert far.sum() >= 5 and (count[:, far] == 0).all() and (power[:, far] == 0).all()
+    X, Y = np.meshgrid(x, y)
+    straight_s = np.sqrt((X - tx[0]) ** 2 + (Y - tx[1]) ** 2 + (1.5 - tx[2]) ** 2) / const.c
+    reached = np.isfinite(m.min_delay_s[0])
+    assert (m.min_delay_s[0][reached] >= straight_s[reached] * (1 - 1e-6)).all()
+
+
 def _ground_and_wall_run(tmp_path):
     """(one_pass_moments' positional arguments, a 2 x 2 DFT codebook): ground and a brick wall,
     two grid heights, 200,000 rays, two reflections."""

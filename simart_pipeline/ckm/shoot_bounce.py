@@ -688,7 +688,16 @@ class Tracer:
         ``L`` is ``c (L - l0) L`` (``c = 4 pi / num_rays``, ``l0 = 0`` for the lattice rays, a cone
         from the transmitter unfolded through specular reflections; a diffracted ray carries its
         own ``tube_c``, ``tube_l0``, :mod:`.diffraction`; after a diffuse bounce: not tracked, a
-        point); on the plane it is that square stretched by ``1 / |cos theta_z|`` along the ray."""
+        point); on the plane it is that square stretched by ``1 / |cos theta_z|`` along the ray.
+
+        Back along the ray it stops at the plane of the face the segment left (``back_reach``, in
+        the ray's state after an interaction, :func:`_back_reach`): a grazing ray's stretched
+        footprint otherwise reached back through the wall it had just left, and its deposits
+        there took the image source's delay (on taipei.osm 190 ns before the line of sight, behind
+        a building). A horizontal face (the ground) bounds no part of the plane above it. Where the
+        footprint then spans less than a cell, the crossing stays a point. (Ahead it is not
+        bounded by the face the segment meets next: the last segments are cast only as far as
+        their last crossing, :meth:`_reach`, so that face is not known there.)"""
         dr, mi, g = self.dr, self.mi, self.g
         d = st["d"]
         length = st["length"] + t_h
@@ -706,6 +715,9 @@ class Tracer:
         a_v = dr.minimum(dr.maximum(side, cell), cap)
         a_u = dr.minimum(dr.maximum(side / cz, cell), cap)
         rho = dr.sqrt(dr.maximum(d.x * d.x + d.y * d.y, 0.0))
+        if "back_reach" in st:  # the face the segment left bounds it (see above, _back_reach)
+            a_u = dr.minimum(a_u, t_h * st["back_reach"])
+        wide &= a_u >= cell
         ux = dr.select(rho > 0, d.x / rho, 1.0)
         uy = dr.select(rho > 0, d.y / rho, 0.0)
         hx = dr.select(wide, (a_u * dr.abs(ux) + a_v * dr.abs(uy)) / g["dx"], 0.0)
@@ -767,6 +779,10 @@ class Tracer:
             d_sel = dr.select(anchor > 0, d, d_c)
             d_dep = dr.normalize(mi.Vector3f(dr.dot(take["m0"], d_sel), dr.dot(take["m1"], d_sel),
                                              dr.dot(take["m2"], d_sel)))
+        # No path is shorter than the straight line. The image source's distance is, to a cell
+        # centre behind the mirror the ray last left (a cell that straddles the wall: the crossing
+        # lies in front of it, the centre behind): 1-6 ns before the line of sight on taipei.osm
+        dist = dr.maximum(dist, dr.norm(centre - mi.Point3f(*self.tx)))
         power = self._received(take["e_re"], take["e_im"], d) * self.power_scale / dr.abs(d.z)
         if weight is not None:
             power *= weight
@@ -958,6 +974,7 @@ class Tracer:
             e_re=spec * (a_r * e_s + b_r * e_pr), e_im=spec * (a_i * e_s + b_i * e_pr),
             length=st["length"] + t,
             **{k: st[k] - 2.0 * dr.dot(n, st[k]) * n for k in ("m0", "m1", "m2")},
+            back_reach=_back_reach(dr, mi, d_r, n),  # the face it leaves bounds its footprints
             **{k: st[k] for k in _CARRIED if k in st})
         if last:
             keep = keep & (self._reach(new["o"], new["d"]) > 0)
@@ -1174,8 +1191,10 @@ class Tracer:
         if last:
             alive &= self._reach(new_o, new_d) > 0
         carried = {k: st[k] for k in _CARRIED if k in st}
+        # the face it leaves bounds its footprints: on its other side for a transmitted ray
+        back = _back_reach(dr, mi, new_d, n if refr is False else dr.select(refr, -n, n))
         new = dict(o=new_o, d=new_d, e_re=new_re, e_im=new_im, length=length, m0=m[0], m1=m[1], m2=m[2],
-                   idx=st["idx"], anchor=anchor, **extra, **carried)
+                   back_reach=back, idx=st["idx"], anchor=anchor, **extra, **carried)
         pending = (alive, *new.values())  # the next state(s), evaluated with the connections
         if split:  # the transmitted rays: T E, on their own random stream keyed by the parent's
             idx_t = _hash32(st["idx"] ^ dr.opaque(mi.UInt32, _key(depth, _DRAW_SPLIT)))
@@ -1187,7 +1206,8 @@ class Tracer:
             k_refr = dr.sqrt(total_t / dr.select(alive_t, w_refr, 1.0))
             new_t = dict(o=mi.Point3f(p - offset * n), d=d, e_re=k_refr * (c_r * e_s + g_r * e_pi),
                          e_im=k_refr * (c_i * e_s + g_i * e_pi), length=length, m0=st["m0"], m1=st["m1"],
-                         m2=st["m2"], idx=idx_t, anchor=st["anchor"], **carried)
+                         m2=st["m2"], back_reach=_back_reach(dr, mi, d, -n), idx=idx_t, anchor=st["anchor"],
+                         **carried)
             if "dir_pdf" in extra:
                 new_t["dir_pdf"] = dr.zeros(mi.Float, dr.width(alive_t))
             new_t = {k: new_t[k] for k in new}  # the same fields in the same order
@@ -1383,6 +1403,18 @@ class Tracer:
                 st = self._reflect(st, t_hit, ids, prim, hit, last)
             if st is None:
                 break
+
+
+def _back_reach(dr, mi, d, n):
+    """How far back along the grid plane a footprint of a ray leaving a face may reach, per metre
+    of ray from the face to its crossing (:meth:`Tracer._footprint`): ``d`` the ray's direction,
+    ``n`` the face's normal on the side the ray leaves on. A crossing ``t`` along the ray lies
+    ``t (d . n)`` from the face's plane, which the plane meets ``t (d . n) / (u . n)`` back along the
+    ray's horizontal direction ``u``; a face that the plane does not meet behind the ray
+    (horizontal, or turned away) bounds nothing: inf."""
+    rho = dr.sqrt(dr.maximum(d.x * d.x + d.y * d.y, 0.0))
+    k = (d.x * n.x + d.y * n.y) / dr.maximum(rho, 1e-12)
+    return dr.select(k > 1e-6, dr.dot(d, n) / k, dr.inf)
 
 
 def _cumulative_lanes(dr, mi, n):
