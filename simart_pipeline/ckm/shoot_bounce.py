@@ -693,8 +693,8 @@ class Tracer:
         Back along the ray it stops at the plane of the face the segment left (``back_reach``, in
         the ray's state after an interaction, :func:`_back_reach`): a grazing ray's stretched
         footprint otherwise reached back through the wall it had just left, and its deposits
-        there took the image source's delay (on taipei.osm 190 ns before the line of sight, behind
-        a building). A horizontal face (the ground) bounds no part of the plane above it. Where the
+        there took the image source's delay (on taipei.osm up to 200 ns before the line of
+        sight, behind a building). A horizontal face (the ground) bounds no part of the plane above it. Where the
         footprint then spans less than a cell, the crossing stays a point. (Ahead it is not
         bounded by the face the segment meets next: the last segments are cast only as far as
         their last crossing, :meth:`_reach`, so that face is not known there.)"""
@@ -974,7 +974,7 @@ class Tracer:
             e_re=spec * (a_r * e_s + b_r * e_pr), e_im=spec * (a_i * e_s + b_i * e_pr),
             length=st["length"] + t,
             **{k: st[k] - 2.0 * dr.dot(n, st[k]) * n for k in ("m0", "m1", "m2")},
-            back_reach=_back_reach(dr, mi, d_r, n),  # the face it leaves bounds its footprints
+            back_reach=_back_reach(dr, d_r, n),  # the face it leaves bounds its footprints
             **{k: st[k] for k in _CARRIED if k in st})
         if last:
             keep = keep & (self._reach(new["o"], new["d"]) > 0)
@@ -1192,7 +1192,7 @@ class Tracer:
             alive &= self._reach(new_o, new_d) > 0
         carried = {k: st[k] for k in _CARRIED if k in st}
         # the face it leaves bounds its footprints: on its other side for a transmitted ray
-        back = _back_reach(dr, mi, new_d, n if refr is False else dr.select(refr, -n, n))
+        back = _back_reach(dr, new_d, n if refr is False else dr.select(refr, -n, n))
         new = dict(o=new_o, d=new_d, e_re=new_re, e_im=new_im, length=length, m0=m[0], m1=m[1], m2=m[2],
                    back_reach=back, idx=st["idx"], anchor=anchor, **extra, **carried)
         pending = (alive, *new.values())  # the next state(s), evaluated with the connections
@@ -1206,7 +1206,7 @@ class Tracer:
             k_refr = dr.sqrt(total_t / dr.select(alive_t, w_refr, 1.0))
             new_t = dict(o=mi.Point3f(p - offset * n), d=d, e_re=k_refr * (c_r * e_s + g_r * e_pi),
                          e_im=k_refr * (c_i * e_s + g_i * e_pi), length=length, m0=st["m0"], m1=st["m1"],
-                         m2=st["m2"], back_reach=_back_reach(dr, mi, d, -n), idx=idx_t, anchor=st["anchor"],
+                         m2=st["m2"], back_reach=_back_reach(dr, d, -n), idx=idx_t, anchor=st["anchor"],
                          **carried)
             if "dir_pdf" in extra:
                 new_t["dir_pdf"] = dr.zeros(mi.Float, dr.width(alive_t))
@@ -1405,7 +1405,7 @@ class Tracer:
                 break
 
 
-def _back_reach(dr, mi, d, n):
+def _back_reach(dr, d, n):
     """How far back along the grid plane a footprint of a ray leaving a face may reach, per metre
     of ray from the face to its crossing (:meth:`Tracer._footprint`): ``d`` the ray's direction,
     ``n`` the face's normal on the side the ray leaves on. A crossing ``t`` along the ray lies
