@@ -694,10 +694,10 @@ class Tracer:
         the ray's state after an interaction, :func:`_back_reach`): a grazing ray's stretched
         footprint otherwise reached back through the wall it had just left, and its deposits
         there took the image source's delay (on taipei.osm up to 200 ns before the line of
-        sight, behind a building). A horizontal face (the ground) bounds no part of the plane above it. Where the
-        footprint then spans less than a cell, the crossing stays a point. (Ahead it is not
-        bounded by the face the segment meets next: the last segments are cast only as far as
-        their last crossing, :meth:`_reach`, so that face is not known there.)"""
+        sight, behind a building). A horizontal face (the ground) bounds no part of the plane
+        above it. Where the footprint then spans less than a cell, the crossing stays a point.
+        (Ahead it is not bounded by the face the segment meets next: the last segments are cast
+        only as far as their last crossing, :meth:`_reach`, so that face is not known there.)"""
         dr, mi, g = self.dr, self.mi, self.g
         d = st["d"]
         length = st["length"] + t_h
