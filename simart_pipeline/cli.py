@@ -262,6 +262,9 @@ def materialize_scene(scene_dir: Path, data_root: Path, weathers=None, tiles=Non
                                         raise_on_error=False, tags=tags)
                 if not result.success:
                     raise _failure(result, label)
+                for ev in result.get_asset_check_evaluations():  # warnings: the run goes on, the user is told
+                    if not ev.passed:
+                        progress(f"        check {ev.check_name} ({ev.severity.value.lower()}): {ev.description}")
                 # A run's outputs (a weather's rendered frames: gigabytes) hang in reference cycles of
                 # the run's objects until a full collection, which a few large objects never trigger:
                 # without this, each weather's step held the last one's frames too (2.4 GB peak on

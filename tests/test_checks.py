@@ -49,9 +49,10 @@ def test_every_check_of_the_tiny_scene_ran_and_passed(tiny_run):
             for name in ("finite_values", "known_frame_ids", "on_shared_clock"):
                 assert (asset, name, f"tiny|{w}") in ran, (asset, name, w)
     for g in ("sunny", "rainy"):
-        assert ("cirs", "passive_channel", f"tiny|{g}") in ran
+        assert {("cirs", "passive_channel", f"tiny|{g}"), ("cirs", "cirs_sampling_converged", f"tiny|{g}")} <= ran
     for t in ("r0c0", "r0c1"):
         assert {("ckm_layers", "ckm_tile_complete", f"tiny|{t}"), ("ckm_layers", "ckm_passive", f"tiny|{t}")} <= ran
+    assert ("ckm_map", "ckm_reference_converged", "tiny") in ran
     # the metadata carries the counts
     passive = [e for k, e in evals if k.name == "passive_channel"][0]
     assert passive.metadata["paths_checked"].value > 0 and passive.metadata["worst_margin_db"].value <= 0.1
@@ -61,7 +62,11 @@ def test_every_check_of_the_tiny_scene_ran_and_passed(tiny_run):
     blocking = {k.name: s.blocking for c in ALL_CHECKS for k, s in zip(c.check_keys, c.check_specs)}
     assert blocking == {"finite_values": True, "known_frame_ids": True, "on_shared_clock": True,
                         "passive_channel": True, "ckm_passive": True, "ckm_tile_complete": False,
+                        "cirs_sampling_converged": False, "ckm_reference_converged": False,
                         "beam_study_sound": False}
+    converged = [e for k, e in evals if k.name == "cirs_sampling_converged"][0]
+    assert converged.metadata["links_compared"].value > 0
+    assert converged.metadata["check_samples_per_src"].value == 10 * converged.metadata["samples_per_src"].value
 
 
 def test_definitions_carry_the_checks():
@@ -70,10 +75,10 @@ def test_definitions_carry_the_checks():
     keys = defs.resolve_asset_graph().asset_check_keys
     assert dg.AssetCheckKey(dg.AssetKey("cirs"), "passive_channel") in keys
     assert dg.AssetCheckKey(dg.AssetKey("radar_frames"), "on_shared_clock") in keys
-    # three store checks per store asset (no clock check where there is no time), four others
+    # three store checks per store asset (no clock check where there is no time), six others
     from simart_pipeline.assets.checks import STORE_ASSETS, TIMELESS
 
-    assert len(keys) == sum(len(list(c.check_keys)) for c in ALL_CHECKS) == 3 * len(STORE_ASSETS) - len(TIMELESS) + 4
+    assert len(keys) == sum(len(list(c.check_keys)) for c in ALL_CHECKS) == 3 * len(STORE_ASSETS) - len(TIMELESS) + 6
 
 
 def test_a_failed_blocking_check_stops_the_downstream_asset(tiny_run, tmp_path, monkeypatch):
@@ -262,3 +267,22 @@ def test_ckm_tile_and_passivity(real):
     r2 = quality.ckm_tile(fewer, cfg, "r0c0")
     assert r2.metadata["sunny_with_delay_spread_fraction"] == pytest.approx(held - 1 / traced, abs=1e-4)
     assert r2.metadata["sunny_with_path_gain_fraction"] == gain
+
+
+def test_a_failed_warning_is_printed_under_its_step_and_the_run_goes_on(tmp_path, monkeypatch):
+    # every link fails the sampling check with a negative tolerance: a warning, not a stop
+    from conftest import TESTS
+    from simart_pipeline.cli import materialize_scene
+    from simart_pipeline.radio import convergence
+
+    monkeypatch.setattr(convergence, "GAIN_TOLERANCE_DB", -1.0)
+    lines = []
+    out = materialize_scene(TESTS / "scenes" / "tiny", tmp_path / "data", ["sunny"], ["r0c0"],
+                            instance=dg.DagsterInstance.ephemeral(), progress=lines.append)
+    warned = [s for s in lines if s.lstrip().startswith("check ")]
+    assert any(s.lstrip().startswith("check cirs_sampling_converged (warn): ") for s in warned), lines
+    assert any(s.lstrip().startswith("check ckm_reference_converged (warn): map sunny: ") for s in warned), lines
+    assert all("raise ray_tracing.samples_per_src" in s for s in warned)
+    # the run went on past both: every store downstream of them was written
+    assert all(p.exists() for paths in out.values() for p in paths)
+    assert "session_bag" in out and "ckm" in out

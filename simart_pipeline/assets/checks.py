@@ -8,10 +8,11 @@ one stops the asset's downstream assets in the same run. docs/design.md, "Checks
 import warnings
 
 import dagster as dg
+import numpy as np
 
 from simart_pipeline import quality, stores
 from simart_pipeline.partitions import scene_partitions, scene_tile, scene_weather, scene_weather_group, split_key
-from simart_pipeline.resources import TREE_ASSETS, ProjectResource
+from simart_pipeline.resources import TREE_ASSETS, ProjectResource, RayTracerResource
 
 # Store assets and their partitions; every one gets the finite-values, clock and frame-id checks
 # (osm_extract has no time coordinate, so no clock check).
@@ -125,6 +126,69 @@ def ckm_passive(context: dg.AssetCheckExecutionContext, project: ProjectResource
                                           "passive", meta))
 
 
+_CONVERGENCE = ("PathSolver's sampling: {what} traced again from every station with 10x "
+                "ray_tracing.samples_per_src (the static scene, Sionna's default candidate generator, the "
+                "solver's other settings); a warning where a link's path gain moves more than 1 dB or its RMS "
+                "delay spread more than max(10 ns, 20 %): paths the configured samples miss "
+                "(docs/ray-tracing.md, 'Sampling convergence').")
+
+
+@dg.asset_check(asset="cirs", partitions_def=scene_weather_group,
+                description=_CONVERGENCE.format(what="8 receivers spread over the session"))
+def cirs_sampling_converged(context: dg.AssetCheckExecutionContext, project: ProjectResource,
+                            ray_tracer: RayTracerResource) -> dg.AssetCheckResult:
+    from simart_pipeline.radio.cirs import link_geometry
+    from simart_pipeline.radio.convergence import sampling_convergence, spread_receivers
+
+    scene, group = _key(context, scene_weather_group)
+    cfg = project.config(scene)
+    lg = link_geometry(cfg, _open(project, "trajectory", scene, None))
+    rx = lg.rx_position_m.reshape(-1, 3)
+    radio = ray_tracer.load(stores.store_path(project.data_root, "paired_meshes", scene, suffix=""), cfg, group)
+    # the default generator finds the CIRs' paths at a third of the deterministic one's time
+    conv = sampling_convergence(radio, lg.tx_position_m, lg.tx_orientation_rad, rx[spread_receivers(rx)],
+                                deterministic=False)
+    return _result(conv.result("platform"), dg.AssetCheckSeverity.WARN)
+
+
+@dg.asset_check(asset="ckm_map", partitions_def=scene_partitions,
+                description=_CONVERGENCE.format(what="reference mode: 8 traced cells spread over each map") +
+                " Fast mode: the map is not PathSolver's; passes.")
+def ckm_reference_converged(context: dg.AssetCheckExecutionContext, project: ProjectResource,
+                            ray_tracer: RayTracerResource) -> dg.AssetCheckResult:
+    from simart_pipeline.ckm.maps import map_groups, map_path
+    from simart_pipeline.ckm.mosaic import open_map
+    from simart_pipeline.radio.convergence import sampling_convergence, spread_receivers
+
+    scene = context.partition_key
+    cfg = project.config(scene)
+    if cfg.ckm.mode != "reference":
+        return dg.AssetCheckResult(passed=True, description="fast mode: the map is not PathSolver's",
+                                   metadata={"links_compared": 0})
+    tx = np.array([b.position_m for b in cfg.base_stations], np.float64)
+    tx_ori = np.deg2rad(np.array([b.orientation_deg for b in cfg.base_stations], np.float64))
+    root = stores.store_path(project.data_root, "paired_meshes", scene, suffix="")
+    results = {}
+    for name in map_groups(cfg):
+        ds = open_map(map_path(project.data_root, scene, name))
+        traced = ~ds["cell_inside_building"].values & ~ds["cell_outside_region"].values[None]
+        hh, yy, xx = np.meshgrid(ds["height"].values, ds["y"].values, ds["x"].values, indexing="ij")
+        pts = np.column_stack([xx[traced], yy[traced], hh[traced]])
+        if len(pts):
+            conv = sampling_convergence(ray_tracer.load(root, cfg, name), tx, tx_ori, pts[spread_receivers(pts)],
+                                        deterministic=cfg.ckm.deterministic_solver)
+            results[name] = conv.result("cell")
+    if not results:
+        return dg.AssetCheckResult(passed=True, description="no traced cell", metadata={"links_compared": 0})
+    failed = {n: r for n, r in results.items() if not r.passed}
+    r = next(iter(failed.values() or results.values()))
+    desc = "; ".join(f"map {n}: {r.description}" for n, r in failed.items()) or r.description
+    meta = {**r.metadata, "links_compared": sum(r.metadata["links_compared"] for r in results.values()),
+            "problems": sum(r.metadata["problems"] for r in results.values())}
+    problems = [f"map {n}: {p}" for n, r in results.items() for p in r.problems]
+    return _result(quality.CheckResult(not failed, desc, meta, problems), dg.AssetCheckSeverity.WARN)
+
+
 @dg.asset_check(asset="beam_prediction", partitions_def=scene_partitions,
                 description="The study is sound: no flight in both the training and the test set and "
                             "every flight in one, top-1 <= top-3 <= top-5 in every row, detections + "
@@ -147,4 +211,5 @@ def beam_study_sound(context: dg.AssetCheckExecutionContext, project: ProjectRes
 
 
 STORE_CHECKS = [_store_checks(asset, pd) for asset, pd in STORE_ASSETS.items()]
-ALL_CHECKS = [*STORE_CHECKS, passive_channel, ckm_tile_complete, ckm_passive, beam_study_sound]
+ALL_CHECKS = [*STORE_CHECKS, passive_channel, cirs_sampling_converged, ckm_tile_complete, ckm_passive,
+              ckm_reference_converged, beam_study_sound]

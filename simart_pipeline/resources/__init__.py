@@ -45,14 +45,16 @@ class RayTracerResource(dg.ConfigurableResource):
     A radio scene is loaded once per process for each (radio mesh file and its modification time,
     scene config, weather): the CKM tiles of one scene share one load."""
 
-    def load(self, paired_meshes: scene_meshes.SceneMeshes, cfg: SceneConfig, weather: str,
+    def load(self, paired_meshes: scene_meshes.SceneMeshes | Path, cfg: SceneConfig, weather: str,
              actors_from: Path | None = None):
-        """The radio scene of ``cfg`` in ``weather``; with ``actors_from`` (the scene folder) it
-        also holds the scene's actors (``scene.actors``): the CIRs see them, the CKM does not."""
+        """The radio scene of ``cfg`` in ``weather`` (``paired_meshes``: the asset's value, or the
+        folder it was written to); with ``actors_from`` (the scene folder) it also holds the
+        scene's actors (``scene.actors``): the CIRs see them, the CKM does not."""
         from simart_pipeline.radio.tracer import RadioScene
         from simart_pipeline.scene.actors import scene_actors
 
-        xml = scene_meshes.radio_scene_file(paired_meshes.root)
+        root = paired_meshes if isinstance(paired_meshes, Path) else paired_meshes.root
+        xml = scene_meshes.radio_scene_file(root)
         bodies = () if actors_from is None else tuple(
             versions.file_digest(Path(actors_from) / a.body.mesh)
             for a in (*cfg.platforms, *cfg.static_actors) if a.body.is_file)
