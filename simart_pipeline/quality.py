@@ -330,8 +330,8 @@ def ckm_passive(ds: xr.Dataset, cfg, rows: slice | None = None, cols: slice | No
 
 def ckm_tile(maps: dict[str, xr.Dataset], cfg, tile: str) -> CheckResult:
     """Tile ``tile`` is marked complete in every map of the scene; fractions of its cells that are
-    masked (inside a building or outside the region, any height) and empty (traced, reached by no
-    station), and of its traced cells those holding a path gain and a delay spread from some
+    masked (``cell_masked``: inside a building, outside the region or, fast mode, less than half
+    outdoors) and empty (traced, reached by no station), and of its traced cells those holding a path gain and a delay spread from some
     station (fast mode masks each below its own minimum of ray hits: ``ckm.min_hits_for_power``,
     ``min_hits_for_spread`` and their effective-count forms). A tile outside the scene's tiling
     passes with nothing to check."""
@@ -348,9 +348,12 @@ def ckm_tile(maps: dict[str, xr.Dataset], cfg, tile: str) -> CheckResult:
             problems.append(f"map {name}: tile {tile} is not complete")
             continue
         t = ds.isel(y=sl[0], x=sl[1])
-        masked = t["cell_inside_building"].values.astype(bool)
-        if "cell_outside_region" in t:
-            masked = masked | t["cell_outside_region"].values.astype(bool)
+        if "cell_masked" in t:  # every mask of the mode (fast mode: cells less than half outdoors too)
+            masked = t["cell_masked"].values.astype(bool)
+        else:  # maps written before it
+            masked = t["cell_inside_building"].values.astype(bool)
+            if "cell_outside_region" in t:
+                masked = masked | t["cell_outside_region"].values.astype(bool)
         masked = np.broadcast_to(masked, t["has_path"].shape[-3:])  # height, y, x
         empty = ~masked & ~t["has_path"].values.astype(bool).any(axis=0)
         meta[f"{name}_cells"] = int(masked.size)

@@ -95,6 +95,37 @@ def test_a_cell_behind_a_metal_wall_has_no_line_of_sight(tiny_scene, tmp_path):
     assert ds["los"].values[:, ~behind].all()
 
 
+def test_an_alley_narrower_than_a_cell_is_masked_in_fast_mode_and_the_map_says_so(tiny_scene, tmp_path):
+    """Two metal blocks 2 m apart, the row of cell centres y = 0 in the alley between them (10 m
+    cells): those cells have their centre outdoors and a fifth of their area (one of the outdoor
+    mask's 4 sample rows). Fast mode masks them (the one-pass divides a cell's sums by its outdoor
+    share); cell_masked and cell_outdoor_fraction say so, where cell_inside_building (the centre)
+    cannot."""
+    cfg = _cfg(tiny_scene, lambda raw: _single_bs_iso(raw, {"mode": "fast", "num_rays": 200_000, "size_m": [80.0, 30.0]}))
+    blocks = {}
+    for name, y0, y1 in (("south", -20.0, -0.5), ("north", 1.5, 20.0)):
+        b = trimesh.creation.box(extents=[60.0, y1 - y0, 30.0])
+        b.apply_translation([60.0, (y0 + y1) / 2, 15.0])
+        blocks[name] = (b, "metal")
+    xml = write_radio_scene(tmp_path / "alley", {**blocks, "ground": (ground_square(), "concrete")}, FC, 0.2)
+    geom = geometry.SourceGeometry([geometry.Feature("building", shapely.box(30, y0, 90, y1), i + 1, height_m=30.0,
+                                                     min_height_m=0.0, radio_material="metal")
+                                    for i, (y0, y1) in enumerate(((-20.0, -0.5), (1.5, 20.0)))])
+    ds = tile_layers(RadioScene.from_config(xml, cfg), cfg, geom, "r0c0").isel(height=0)
+    x, y = ds["x"].values, ds["y"].values
+    row = int(np.argmin(np.abs(y)))
+    assert y[row] == 0.0
+    alley = (x > 30) & (x < 90)  # the cells along the alley: centres outdoors, 2 m of their 10 m outdoors
+    assert alley.sum() == 6 and not ds["cell_inside_building"].values[row, alley].any()
+    np.testing.assert_allclose(ds["cell_outdoor_fraction"].values[row, alley], 0.25)  # 1 of 4 sample rows
+    assert ds["cell_masked"].values[row, alley].all() and not ds["cell_masked"].values[row, ~alley].any()
+    assert not ds["has_path"].values[:, row, alley].any() and np.isnan(ds["rate_bps"].values[row, alley]).all()
+    # the cells beside them, inside the blocks, are masked by their centre as before
+    assert ds["cell_inside_building"].values[row + 1, alley].all() and ds["cell_masked"].values[row + 1, alley].all()
+    # and the open cells before the blocks hold values
+    assert ds["has_path"].values[:, row, ~alley].all()
+
+
 def test_masked_cells_are_never_traced_and_empty_tiles_need_no_scene(tiny_built, tiny_scene):
     cfg, geom, _, out = tiny_built
     cfg = _cfg(tiny_scene, lambda raw: raw["ckm"].update(
@@ -414,6 +445,15 @@ def test_fast_mode_writes_the_same_layers_and_agrees_with_the_reference(tiny_bui
     assert (ref["los"].values == fast["los"].values)[both].mean() > 0.9
     indoor = ref["cell_inside_building"].values
     assert not fast["has_path"].values[:, indoor].any()
+    # cell_masked is every mask the mode applied: the tile's in both; fast mode adds the cells less
+    # than half outdoors (centre outdoors or not), which hold nothing; reference mode has no share
+    tile_mask = indoor | ref["cell_outside_region"].values[None]
+    np.testing.assert_array_equal(ref["cell_masked"].values, tile_mask)
+    assert np.isnan(ref["cell_outdoor_fraction"].values).all()
+    share = fast["cell_outdoor_fraction"].values
+    assert ((share >= 0) & (share <= 1)).all()
+    np.testing.assert_array_equal(fast["cell_masked"].values, tile_mask | (share < 0.5))
+    assert not fast["has_path"].values[:, fast["cell_masked"].values].any()
 
 
 def test_fast_mode_follows_the_scenes_diffraction_switch(tiny_built, tiny_scene):

@@ -39,7 +39,7 @@ from simart_pipeline import stores
 from simart_pipeline.ckm import outdoor
 from simart_pipeline.ckm.grid import cell_centres, scene_tiles
 from simart_pipeline.ckm.layers import tile_grid
-from simart_pipeline.ckm.one_pass import DEFAULT_MIN_OUTDOOR_FRACTION
+from simart_pipeline.ckm.outdoor import DEFAULT_MIN_OUTDOOR_FRACTION
 from simart_pipeline.config import load_scene_config
 from simart_pipeline.radio.tracer import RadioScene
 from simart_pipeline.scene import build, meshes, source

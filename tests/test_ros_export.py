@@ -151,6 +151,13 @@ def test_mcap_decodes_with_the_independent_mcap_reader_and_arrays_are_bit_for_bi
     np.testing.assert_array_equal(grid.astype(np.float32), ckm["path_gain_db"].sel(bs="bs0").isel(height=0).values)
     assert (layer.origin_x_m, layer.origin_y_m) == (ckm["x"].values[0], ckm["y"].values[0])
     assert layer.resolution_m == pytest.approx(cfg.ckm.cell_size_m)
+    masked = ckm["cell_masked"].isel(height=0).values
+    assert masked.any()
+    valid = np.asarray(layer.valid, bool).reshape(layer.rows, layer.cols)
+    np.testing.assert_array_equal(valid, np.isfinite(grid) & ~masked)
+    _, mask_layer = decoded["/simart/ckm/sunny/cell_masked"][0]  # a mask describes every cell
+    assert np.asarray(mask_layer.valid, bool).all()
+    np.testing.assert_array_equal(np.asarray(mask_layer.data).reshape(layer.rows, layer.cols), masked)
 
     # the parked car in the car camera's ground truth, by name and class
     dets = [d for _, m in decoded["/car0/cam/actors"] for d in m.detections]

@@ -171,7 +171,7 @@ def ckm_reference_converged(context: dg.AssetCheckExecutionContext, project: Pro
     results = {}
     for name in map_groups(cfg):
         ds = open_map(map_path(project.data_root, scene, name))
-        traced = ~ds["cell_inside_building"].values & ~ds["cell_outside_region"].values[None]
+        traced = ~ds["cell_masked"].values.astype(bool)
         hh, yy, xx = np.meshgrid(ds["height"].values, ds["y"].values, ds["x"].values, indexing="ij")
         pts = np.column_stack([xx[traced], yy[traced], hh[traced]])
         if len(pts):

@@ -24,13 +24,18 @@ import xarray as xr
 
 from simart_pipeline.ckm import moments as mom
 from simart_pipeline.ckm.grid import cell_centres, outside_region, tile_slices
+from simart_pipeline.ckm.outdoor import DEFAULT_MIN_OUTDOOR_FRACTION, OUTDOOR_SAMPLES_PER_AXIS
 from simart_pipeline.config import SceneConfig
 from simart_pipeline.link.budget import power_db
 from simart_pipeline.scene.geometry import SourceGeometry, inside_buildings
 from simart_pipeline.scene.solids import Solids, inside_solids
 from simart_pipeline.vocabulary import SPEED_OF_LIGHT_MPS
 
-MASKED = "cell masked (inside a building or outside the region), or nothing reached it"
+MASKED = "cell masked (cell_masked), or nothing reached it"
+CELL_MASKED = ("masked, no layer holds a value: the centre inside a building or outside the region "
+               f"(cell_inside_building, cell_outside_region) or, fast mode, less than "
+               f"{100 * DEFAULT_MIN_OUTDOOR_FRACTION:g} % of the cell's area outdoors (cell_outdoor_fraction; the "
+               "one-pass divides a cell's sums by that share)")
 # the layers that need a second moment's sampling (moments.too_few_hits with the spread minimums)
 SPREAD_LAYERS = ("rms_delay_spread_s", *mom.SPREAD_NAMES.values(), *mom.MEAN_ANGLE_NAMES.values())
 SPREAD_MASKED = ("; or, fast mode, fewer ray hits than ckm.min_hits_for_spread or fewer effective hits "
@@ -129,13 +134,15 @@ def reference_moments(radio, cfg: SceneConfig, points: np.ndarray, weights: np.n
 
 
 def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, tx_ant_positions_m
-                 ) -> tuple[mom.CellMoments, list[int], list[dict | None], list[dict | None], list[dict | None]]:
+                 ) -> tuple[mom.CellMoments, list[int], list[dict | None], list[dict | None], list[dict | None],
+                            np.ndarray, np.ndarray]:
     """One shoot-and-bounce pass per base station over the tile's planes (more where
     ``ckm.adaptive_max_rays`` asks): moments ``[B, H, y, x]``, the rays each station's pass used
     and what each one's second passes on undersampled cells did (None: none), the diffracted
     rays' (``ckm.diffraction_resample_factor``) and the lattice rays'
-    (``ckm.lattice_resample_factor``), and what each one's diffuse gather did
-    (``ckm.diffuse_gather``)."""
+    (``ckm.lattice_resample_factor``), what each one's diffuse gather did
+    (``ckm.diffuse_gather``), the cells' outdoor share and the cells the passes masked ``[H, y, x]``
+    (the tile's mask and the cells less than half outdoors)."""
     from simart_pipeline.ckm.one_pass import adaptive_one_pass_moments
     from simart_pipeline.ckm.outdoor import outdoor_fraction, radio_solids
 
@@ -169,7 +176,7 @@ def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, t
         vals = [getattr(m, f) for m in per_bs]
         stacked[f] = None if vals[0] is None else np.stack(vals)
     return (mom.CellMoments(**stacked), [m.num_rays for m in per_bs], [m.second_pass for m in per_bs],
-            [m.lattice_second_pass for m in per_bs], [m.diffuse_gather for m in per_bs])
+            [m.lattice_second_pass for m in per_bs], [m.diffuse_gather for m in per_bs], frac, per_bs[0].masked)
 
 
 def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_dir=None,
@@ -191,6 +198,9 @@ def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_
     hh, yy, xx = np.meshgrid(grid.heights, grid.y, grid.x, indexing="ij")
     m = mom.CellMoments.zeros(shape, weights.shape[0])
     coherent = np.zeros(shape)
+    # what the mode masked: the tile's mask; fast mode adds the cells less than half outdoors, whose
+    # centre may lie outside every building (a street cell cut by a facade)
+    masked, frac = ~traced, np.full(traced.shape, np.nan)
     if n_traced and cfg.ckm.mode == "reference":
         pts = np.column_stack([xx[traced], yy[traced], hh[traced]])
         mt, coh = reference_moments(radio, cfg, pts, weights)
@@ -198,7 +208,8 @@ def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_
             getattr(m, f)[:, traced] = getattr(mt, f)
         coherent[:, traced] = coh
     elif n_traced:
-        m, rays_per_bs, second_pass, lattice_pass, gathered = fast_moments(radio, cfg, grid, weights, tx_ant)
+        m, rays_per_bs, second_pass, lattice_pass, gathered, frac, masked = fast_moments(
+            radio, cfg, grid, weights, tx_ant)
         coherent[:] = np.nan
     tx = np.array([b.position_m for b in cfg.base_stations], np.float64)
     centre = np.stack([xx, yy, hh], -1)
@@ -207,7 +218,7 @@ def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_
     for f in mom.CellMoments.__dataclass_fields__:
         v = getattr(m, f)
         if v is not None and f != "tau0_s":
-            v[:, ~traced] = np.inf if f == "min_delay_s" else 0
+            v[:, masked] = np.inf if f == "min_delay_s" else 0
     fast = cfg.ckm.mode == "fast"
     layers = mom.layers_from_moments(m, cfg.ckm.min_hits_for_spread if fast else 1,
                                      cfg.ckm.min_hits_for_power if fast else 1,
@@ -218,8 +229,8 @@ def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_
     layers["path_gain_coherent_db"] = np.where(has, power_db(coherent), np.nan)
     power_dbm = np.array([b.power_dbm for b in cfg.base_stations])[:, None, None, None]
     layers["rx_power_dbm"] = power_dbm + layers["path_gain_db"]
-    ds = layers_dataset(layers, cfg, grid, B)
-    ds = ds.merge(link_layers(cfg, m.beam_power, has, traced))
+    ds = layers_dataset(layers, cfg, grid, B, masked, frac)
+    ds = ds.merge(link_layers(cfg, m.beam_power, has, ~masked))
     ds.attrs.update(tile=tile, mode=cfg.ckm.mode, cells_traced=n_traced,
                     in_scene_tiling=int(tile_slices(cfg.ckm, tile) is not None))
     if fast and n_traced:
@@ -233,7 +244,10 @@ def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_
     return ds
 
 
-def layers_dataset(layers: dict, cfg: SceneConfig, grid: TileGrid, B: int) -> xr.Dataset:
+def layers_dataset(layers: dict, cfg: SceneConfig, grid: TileGrid, B: int, masked: np.ndarray | None = None,
+                   outdoor_fraction: np.ndarray | None = None) -> xr.Dataset:
+    """The tile's dataset: ``layers`` ``[B, H, y, x]`` with their attrs, the masks and the cells'
+    outdoor share (``masked`` / ``outdoor_fraction``: ``[H, y, x]``, default the tile's mask and NaN)."""
     d4 = ("bs", "height", "y", "x")
     data = {}
     for name, v in layers.items():
@@ -259,6 +273,13 @@ def layers_dataset(layers: dict, cfg: SceneConfig, grid: TileGrid, B: int) -> xr
                                     dict(long_name="cell centre inside a building: masked, not traced"))
     data["cell_outside_region"] = (("y", "x"), grid.outside_region,
                                    dict(long_name="cell centre outside the region of interest: masked, not traced"))
+    data["cell_masked"] = (("height", "y", "x"), ~grid.traced if masked is None else np.asarray(masked, bool),
+                           dict(long_name=CELL_MASKED))
+    frac = np.full(grid.traced.shape, np.nan) if outdoor_fraction is None else outdoor_fraction
+    data["cell_outdoor_fraction"] = (("height", "y", "x"), np.asarray(frac, np.float32),
+                                     dict(units="1", long_name=f"share of the cell's area outside buildings "
+                                          f"({OUTDOOR_SAMPLES_PER_AXIS} x {OUTDOOR_SAMPLES_PER_AXIS} points)",
+                                          nan_means="reference mode: not computed (a cell is traced at its centre)"))
     coords = map_coords(cfg, grid)
     if "beam_gain_db" in layers:
         coords["beam"] = ("beam", data_coords_beam, dict(long_name="codebook beam index"))

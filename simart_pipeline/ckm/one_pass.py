@@ -98,7 +98,7 @@ from simart_pipeline.ckm.diffraction import STRETCHES_PER_PAIR
 from simart_pipeline.ckm.gather import (DEFAULT_GATHER_AUTO_MIN_SHARE, DEFAULT_GATHER_BELOW_EFFECTIVE_HITS,
                                         DEFAULT_GATHER_DIRECTIONS_PER_POINT, DEFAULT_PHOTON_RAY_SHARE,
                                         GATHER_AUTO_REFERENCE_RAYS)
-from simart_pipeline.ckm.outdoor import outdoor_fraction, radio_solids
+from simart_pipeline.ckm.outdoor import DEFAULT_MIN_OUTDOOR_FRACTION, outdoor_fraction, radio_solids
 from simart_pipeline.ckm.shoot_bounce import (DIRECTION_QUANTUM, NOT_A_BIN, Q_BITS, Q_OFFSET, TAGS, Grid,
                                               LatticeBins, Tracer, grid_from_centres)
 from simart_pipeline.link.beams import rotation_local_to_world
@@ -117,7 +117,6 @@ DEFAULT_BATCH_RAYS_GPU = 1 << 22
 DEFAULT_MIN_HITS_FOR_SPREAD = 10
 DEFAULT_MIN_EFFECTIVE_HITS_FOR_SPREAD = 10.0  # config.Ckm.min_effective_hits_for_spread's default
 DEFAULT_MIN_HITS_FOR_POWER = 5  # config.Ckm.min_hits_for_power's default; the reasoning is there
-DEFAULT_MIN_OUTDOOR_FRACTION = 0.5
 DEFAULT_MAX_FOOTPRINT_CELLS = 8.0
 DEFAULT_LATTICE_BIN_RAYS = 16  # lattice points per bin of the lattice's second pass (LatticeBins)
 RANDOM_STREAMS = 2**32  # the tracer's random streams are keyed by a UInt32 ray number

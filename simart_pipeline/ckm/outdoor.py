@@ -23,6 +23,9 @@ from simart_pipeline.scene.meshes import SceneMeshes
 from simart_pipeline.scene.solids import Solids, inside_solids, mesh_solids
 
 OUTDOOR_SAMPLES_PER_AXIS = 4
+# cells with less of their area outdoors are masked in fast mode (the one-pass divides a cell's sums by
+# its outdoor share: power per outdoor area), and say so in the map (layer cell_masked)
+DEFAULT_MIN_OUTDOOR_FRACTION = 0.5
 
 
 def radio_triangles(radio) -> np.ndarray:

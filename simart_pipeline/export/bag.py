@@ -449,9 +449,14 @@ def ckm_layer_names(ckm: xr.Dataset) -> list[str]:
 def _ckm_messages(ckm: xr.Dataset, materials: str) -> Iterator[Msg]:
     x, y = ckm["x"].values, ckm["y"].values
     res = float(x[1] - x[0]) if len(x) > 1 else float("nan")
-    masked = np.zeros((len(y), len(x)), bool)
-    if "cell_outside_region" in ckm:
-        masked |= ckm["cell_outside_region"].values
+    if "cell_masked" in ckm:  # every mask the map's mode applied, per height
+        masked = ckm["cell_masked"].values.astype(bool)
+    else:  # maps written before it
+        masked = np.zeros((len(ckm["height"]), len(y), len(x)), bool)
+        if "cell_outside_region" in ckm:
+            masked |= ckm["cell_outside_region"].values.astype(bool)
+        if "cell_inside_building" in ckm:
+            masked |= ckm["cell_inside_building"].values.astype(bool)
     for name in ckm_layer_names(ckm):
         var = ckm[name]
         stations = [str(b) for b in ckm["bs"].values] if "bs" in var.dims else [""]
@@ -459,8 +464,8 @@ def _ckm_messages(ckm: xr.Dataset, materials: str) -> Iterator[Msg]:
             for h, height in enumerate(ckm["height"].values):
                 arr = (var.isel(bs=s) if bs else var).isel(height=h).values
                 data = arr.astype(np.float64)
-                inside = ckm["cell_inside_building"].isel(height=h).values if "cell_inside_building" in ckm else False
-                valid = ~masked & ~inside & np.isfinite(data)
+                # the masks and the outdoor share describe every cell; the layers only the unmasked
+                valid = np.isfinite(data) & (True if name.startswith("cell_") else ~masked[h])
                 topic = f"/simart/ckm/{materials}/{name}" + (f"/{bs}" if bs else "")
                 yield Msg(0, topic, "simart_msgs/msg/CkmLayer", {
                     "header": header(0, frames.WORLD), "layer": name, "units": str(var.attrs.get("units", "")),
