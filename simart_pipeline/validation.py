@@ -73,7 +73,47 @@ def scene_problems(scene_dir: str | Path) -> tuple[SceneConfig | None, list[str]
         except ValueError as exc:
             problems.append(f"{where}: codebook.path: {exc}")
     problems += _extent_problems(cfg, geom, where)
+    problems += _ground_problems(cfg, geom, where)
     return cfg, problems
+
+
+def _ground_problems(cfg: SceneConfig, geom, where: Path) -> list[str]:
+    """Base stations, waypoints and CKM planes below the ground surface of a source whose ground is
+    not the plane z = 0 (a mesh or Sionna scene with terrain): their heights are ENU z above the
+    origin, not above the ground, so on a hill they lie inside it."""
+    if geom.ground_surface_m is None:
+        return []
+    from simart_pipeline.ckm.grid import cell_centres, outside_region
+
+    ckm = cfg.ckm
+    y, x = cell_centres(ckm)
+    xx, yy = np.meshgrid(x, y)
+    traced = ~outside_region(ckm, x, y)
+    devices = [(f"base_stations.{i}.position_m", f"{b.name} at {list(b.position_m)}", b.position_m)
+               for i, b in enumerate(cfg.base_stations)]
+    devices += [(f"platforms.{i}.trajectory.waypoints_m.{k}", str(list(w)), w)
+                for i, p in enumerate(cfg.platforms) for k, w in enumerate(getattr(p.trajectory, "waypoints_m", ()))]
+    qx = np.concatenate([[d[2][0] for d in devices], xx[traced]])
+    qy = np.concatenate([[d[2][1] for d in devices], yy[traced]])
+    ground = geometry.ground_elevation_m(geom, qx, qy)  # one interpolation for every point
+    relief = geom.ground_surface_m[:, 2]
+    above = f"heights are ENU z above the scene's origin, not above ground (the ground rises {relief.min():.1f} .. " \
+            f"{relief.max():.1f} m)"
+    problems = []
+    for (key, what, pos), z in zip(devices, ground[:len(devices)]):
+        if pos[2] < z:
+            problems.append(f"{where}: {key}: {what} lies {z - pos[2]:.1f} m below the ground surface there "
+                            f"({z:.1f} m): {above}")
+    cells = ground[len(devices):]
+    for k, h in enumerate(ckm.heights):
+        below = cells > h
+        if below.any():
+            key = "ckm.height_m" if ckm.heights_m is None else f"ckm.heights_m.{k}"
+            problems.append(f"{where}: {key}: the plane at {h:g} m lies below the ground surface in "
+                            f"{100 * below.mean():.3g} % of the grid's cells (the ground there: {cells.min():.1f} .. "
+                            f"{cells.max():.1f} m): {above}; CKM planes are horizontal, so place the grid where "
+                            "the ground stays below them (ckm.center_m, size_m, region_m) or raise the height")
+    return problems
 
 
 def _extent_problems(cfg: SceneConfig, geom, where: Path) -> list[str]:

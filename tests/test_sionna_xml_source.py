@@ -13,7 +13,8 @@ import yaml
 
 from simart_pipeline import stores, validation, versions
 from simart_pipeline.config import ConfigError, SionnaXmlSource, load_scene_config
-from simart_pipeline.scene import meshes
+from simart_pipeline.scene import geometry, meshes
+from simart_pipeline.scene.source import build_source_geometry
 from simart_pipeline.scene.sionna_xml import (SionnaXmlError, build_from_sionna_xml, referenced_files,
                                               source_geometry_from_sionna_xml)
 from simart_pipeline.vocabulary import SPEED_OF_LIGHT_MPS, SemanticClass
@@ -380,3 +381,50 @@ def test_sionna_xml_scene_materialises_through_dagster(canyon, tmp_path):
     assert int((src_ds["feature_class"].values == "building").sum()) == 6
     cirs = stores.open_store(next((data / "cirs" / "canyon").glob("*.zarr")))
     assert cirs.sizes["time"] == 3 and bool(cirs["valid"].any())
+
+
+def _ramp(x0: float, x1: float, rise_m: float, half_y: float) -> trimesh.Trimesh:
+    """A ground rising linearly from z = 0 at x0 to ``rise_m`` at x1 (a hillside)."""
+    v = np.array([[x0, -half_y, 0], [x1, -half_y, rise_m], [x1, half_y, rise_m], [x0, half_y, 0]], float)
+    return trimesh.Trimesh(v, [[0, 1, 2], [0, 2, 3]], process=False)
+
+
+def test_devices_and_ckm_planes_below_a_terrain_are_named_with_the_ground_there(tmp_path):
+    # a hillside z = 0.2 (x + 50) over x in [-50, 50]: a station and a waypoint below it, and the
+    # CKM plane at 1.5 m under the ground in every cell column but the first (centres x = -45, -35,
+    # ..., 45: ground 1, 3, ..., 19 m): 90 % of the cells
+    d = tmp_path / "hill"
+    d.mkdir()
+    shapes = {"tower": SHAPES["tower"], "floor": (_ramp(-50.0, 50.0, 20.0, 40.0), "ground")}
+    write_tiny_xml(d, shapes=shapes)
+    raw = {"name": "hill", "origin": {"latitude_deg": 48.0, "longitude_deg": 11.0},
+           "source": {"kind": "sionna_xml", "path": "scene.xml"},
+           "base_stations": [{"name": "bs0", "position_m": [25.0, 0.0, 12.0]}],   # ground 15 m
+           "platforms": [{"name": "p", "kind": "uav",
+                          "trajectory": {"waypoints_m": [[-40.0, -30.0, 30.0], [30.0, -30.0, 10.0]],  # ground 2, 16 m
+                                         "speed_mps": 5.0}}],
+           "clock": {"duration_s": 1.0},
+           "ckm": {"center_m": [0.0, -30.0], "size_m": [100.0, 20.0], "cell_size_m": 10.0, "height_m": 1.5}}
+    (d / "scene.yaml").write_text(yaml.safe_dump(raw))
+    cfg = load_scene_config(d)
+    geom = build_source_geometry(cfg, d)
+    np.testing.assert_allclose(geometry.ground_elevation_m(geom, [-50.0, 0.0, 25.0, 49.0], [0.0, 10.0, -5.0, 39.0]),
+                               [0.0, 10.0, 15.0, 19.8], atol=1e-6)
+    _, problems = validation.scene_problems(d)
+    where = f"{d / 'scene.yaml'}"
+    assert [p.split(": ")[1] for p in problems] == ["base_stations.0.position_m",
+                                                   "platforms.0.trajectory.waypoints_m.1", "ckm.height_m"]
+    assert problems[0].startswith(f"{where}: base_stations.0.position_m: bs0 at [25.0, 0.0, 12.0] lies 3.0 m below "
+                                  "the ground surface there (15.0 m)")
+    assert "lies 6.0 m below the ground surface there (16.0 m)" in problems[1]
+    assert "the plane at 1.5 m lies below the ground surface in 90 % of the grid's cells (the ground there: " \
+           "1.0 .. 19.0 m)" in problems[2]
+    assert all("not above ground (the ground rises 0.0 .. 20.0 m)" in p for p in problems)
+    # raised above it, nothing to say; a flat ground at z = 0 keeps no surface at all
+    raw["base_stations"][0]["position_m"][2] = 16.0
+    raw["platforms"][0]["trajectory"]["waypoints_m"][1][2] = 17.0
+    raw["ckm"]["height_m"] = 21.0
+    (d / "scene.yaml").write_text(yaml.safe_dump(raw))
+    assert validation.scene_problems(d)[1] == []
+    write_tiny_xml(d, shapes={"tower": SHAPES["tower"], "floor": SHAPES["floor"]})
+    assert build_source_geometry(load_scene_config(d), d).ground_surface_m is None

@@ -56,6 +56,10 @@ class SourceGeometry:
     origin: tuple[float, float, float] | None = None  # WGS84 latitude, longitude (deg), altitude (m)
     attribution: str = ""
     warnings: list[str] = field(default_factory=list)
+    # [N, 3] m: vertices of the ground surface (ground, road and water faces) of a mesh or Sionna
+    # scene whose ground is not the plane z = 0 (terrain: Sionna's san_francisco rises 0-104 m);
+    # None: the plane z = 0. In memory only (validation); the stores keep the features.
+    ground_surface_m: np.ndarray | None = None
 
     def of_class(self, cls: str) -> list[Feature]:
         return [f for f in self.features if f.feature_class == cls]
@@ -210,6 +214,27 @@ def from_dataset(ds: xr.Dataset) -> SourceGeometry:
 def building_footprints(geom: SourceGeometry) -> list[Polygon]:
     """Footprint polygons of every extruded volume."""
     return [p for f in geom.volumes() for p in polygons_of(f.geometry)]
+
+
+def ground_elevation_m(geom: SourceGeometry, x, y) -> np.ndarray:
+    """The ground surface's height (m, ENU z) at points ``(x, y)``: 0 where the source's ground is
+    the plane z = 0; else interpolated linearly over the surface's vertices (the highest one where
+    several share an (x, y): a road on the terrain), the nearest vertex's outside their hull."""
+    from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
+
+    x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
+    pts = geom.ground_surface_m
+    if pts is None or not len(pts):
+        return np.zeros(x.shape)
+    xy, inv = np.unique(np.round(pts[:, :2], 3), axis=0, return_inverse=True)
+    z = np.full(len(xy), -np.inf)
+    np.maximum.at(z, inv.ravel(), pts[:, 2])
+    q = np.column_stack([x.ravel(), y.ravel()])
+    out = LinearNDInterpolator(xy, z)(q) if len(xy) >= 3 else np.full(len(q), np.nan)
+    miss = ~np.isfinite(out)
+    if miss.any():
+        out[miss] = NearestNDInterpolator(xy, z)(q[miss])
+    return out.reshape(x.shape)
 
 
 def inside_buildings(geom: SourceGeometry, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:

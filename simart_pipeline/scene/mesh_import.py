@@ -37,6 +37,7 @@ from simart_pipeline.vocabulary import SemanticClass
 SUPPORTED_SUFFIXES = (".obj", ".ply", ".stl", ".gltf", ".glb")
 _Y_UP_TO_Z_UP = np.array([[1.0, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]])  # (x, y, z) -> (x, -z, y)
 _LABEL_KEYS = ("semantic_class", "radio_material")
+GROUND_PLANE_TOLERANCE_M = 0.05  # a ground within this of z = 0 everywhere is the plane z = 0
 
 
 class MeshImportError(ValueError):
@@ -449,4 +450,8 @@ def source_geometry_from_imported(imp: ImportedMesh, origin: tuple[float, float,
         material = str(names[np.argmax(np.bincount(inv, weights=area))])
     out.features.append(Feature("ground", shapely.box(lo[0], lo[1], hi[0], hi[1]),
                                 len(imp.parts) + 1, radio_material=material))
+    if flat.any():  # a relief, or a plane off z = 0: heights above the origin are not above ground
+        surface = imp.vertices[np.unique(imp.faces[flat])]
+        if np.abs(surface[:, 2]).max() > GROUND_PLANE_TOLERANCE_M:
+            out.ground_surface_m = surface
     return out
