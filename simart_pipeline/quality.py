@@ -336,6 +336,7 @@ def ckm_tile(maps: dict[str, xr.Dataset], cfg, tile: str) -> CheckResult:
     ``min_hits_for_spread`` and their effective-count forms). A tile outside the scene's tiling
     passes with nothing to check."""
     from simart_pipeline.ckm.grid import parse_tile_key, tile_slices
+    from simart_pipeline.ckm.maps import masked_cells
 
     sl = tile_slices(cfg.ckm, tile)
     if sl is None:
@@ -348,13 +349,7 @@ def ckm_tile(maps: dict[str, xr.Dataset], cfg, tile: str) -> CheckResult:
             problems.append(f"map {name}: tile {tile} is not complete")
             continue
         t = ds.isel(y=sl[0], x=sl[1])
-        if "cell_masked" in t:  # every mask of the mode (fast mode: cells less than half outdoors too)
-            masked = t["cell_masked"].values.astype(bool)
-        else:  # maps written before it
-            masked = t["cell_inside_building"].values.astype(bool)
-            if "cell_outside_region" in t:
-                masked = masked | t["cell_outside_region"].values.astype(bool)
-        masked = np.broadcast_to(masked, t["has_path"].shape[-3:])  # height, y, x
+        masked = np.broadcast_to(masked_cells(t), t["has_path"].shape[-3:])  # height, y, x
         empty = ~masked & ~t["has_path"].values.astype(bool).any(axis=0)
         meta[f"{name}_cells"] = int(masked.size)
         meta[f"{name}_masked_fraction"] = round(float(masked.mean()), 4)

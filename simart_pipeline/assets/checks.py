@@ -156,7 +156,7 @@ def cirs_sampling_converged(context: dg.AssetCheckExecutionContext, project: Pro
                 " Fast mode: the map is not PathSolver's; passes.")
 def ckm_reference_converged(context: dg.AssetCheckExecutionContext, project: ProjectResource,
                             ray_tracer: RayTracerResource) -> dg.AssetCheckResult:
-    from simart_pipeline.ckm.maps import map_groups, map_path
+    from simart_pipeline.ckm.maps import map_groups, map_path, masked_cells
     from simart_pipeline.ckm.mosaic import open_map
     from simart_pipeline.radio.convergence import sampling_convergence, spread_receivers
 
@@ -171,7 +171,7 @@ def ckm_reference_converged(context: dg.AssetCheckExecutionContext, project: Pro
     results = {}
     for name in map_groups(cfg):
         ds = open_map(map_path(project.data_root, scene, name))
-        traced = ~ds["cell_masked"].values.astype(bool)
+        traced = ~masked_cells(ds)
         hh, yy, xx = np.meshgrid(ds["height"].values, ds["y"].values, ds["x"].values, indexing="ij")
         pts = np.column_stack([xx[traced], yy[traced], hh[traced]])
         if len(pts):
@@ -180,12 +180,12 @@ def ckm_reference_converged(context: dg.AssetCheckExecutionContext, project: Pro
             results[name] = conv.result("cell")
     if not results:
         return dg.AssetCheckResult(passed=True, description="no traced cell", metadata={"links_compared": 0})
-    failed = {n: r for n, r in results.items() if not r.passed}
-    r = next(iter(failed.values() or results.values()))
-    desc = "; ".join(f"map {n}: {r.description}" for n, r in failed.items()) or r.description
-    meta = {**r.metadata, "links_compared": sum(r.metadata["links_compared"] for r in results.values()),
-            "problems": sum(r.metadata["problems"] for r in results.values())}
-    problems = [f"map {n}: {p}" for n, r in results.items() for p in r.problems]
+    failed = {n: res for n, res in results.items() if not res.passed}
+    first = next(iter(failed.values() or results.values()))
+    desc = "; ".join(f"map {n}: {res.description}" for n, res in failed.items()) or first.description
+    meta = {**first.metadata, "links_compared": sum(res.metadata["links_compared"] for res in results.values()),
+            "problems": sum(res.metadata["problems"] for res in results.values())}
+    problems = [f"map {n}: {p}" for n, res in results.items() for p in res.problems]
     return _result(quality.CheckResult(not failed, desc, meta, problems), dg.AssetCheckSeverity.WARN)
 
 

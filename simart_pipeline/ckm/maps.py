@@ -28,6 +28,17 @@ def map_name_for_weather(cfg: SceneConfig, weather: str) -> str:
                      f"{list(cfg.ckm.weathers or cfg.weathers)}")
 
 
+def masked_cells(ds: xr.Dataset) -> np.ndarray:
+    """``[height, y, x]`` bool: the cells a map (or a tile of it) masked, ``cell_masked``; for maps
+    written before that layer, the centre masks it is made of."""
+    if "cell_masked" in ds:
+        return ds["cell_masked"].values.astype(bool)
+    masked = ds["cell_inside_building"].values.astype(bool)
+    if "cell_outside_region" in ds:
+        masked = masked | ds["cell_outside_region"].values.astype(bool)[None]
+    return masked
+
+
 def map_path(data_root, scene: str, name: str) -> Path:
     return stores.store_path(data_root, "ckm", scene, name, suffix=".zarr")
 

@@ -449,14 +449,9 @@ def ckm_layer_names(ckm: xr.Dataset) -> list[str]:
 def _ckm_messages(ckm: xr.Dataset, materials: str) -> Iterator[Msg]:
     x, y = ckm["x"].values, ckm["y"].values
     res = float(x[1] - x[0]) if len(x) > 1 else float("nan")
-    if "cell_masked" in ckm:  # every mask the map's mode applied, per height
-        masked = ckm["cell_masked"].values.astype(bool)
-    else:  # maps written before it
-        masked = np.zeros((len(ckm["height"]), len(y), len(x)), bool)
-        if "cell_outside_region" in ckm:
-            masked |= ckm["cell_outside_region"].values.astype(bool)
-        if "cell_inside_building" in ckm:
-            masked |= ckm["cell_inside_building"].values.astype(bool)
+    from simart_pipeline.ckm.maps import masked_cells
+
+    masked = np.broadcast_to(masked_cells(ckm), (len(ckm["height"]), len(y), len(x)))  # every mask of its mode
     for name in ckm_layer_names(ckm):
         var = ckm[name]
         stations = [str(b) for b in ckm["bs"].values] if "bs" in var.dims else [""]
