@@ -47,13 +47,14 @@ def scene_problems(scene_dir: str | Path) -> tuple[SceneConfig | None, list[str]
         if inside(b.position_m):
             problems.append(f"{where}: base_stations.{i}.position_m: {b.name} at {list(b.position_m)} "
                             "is inside a building")
+    plans = {}  # platform index -> its planned motion
     for i, p in enumerate(cfg.platforms):
         for k, w in enumerate(getattr(p.trajectory, "waypoints_m", ())):
             if inside(w):
                 problems.append(f"{where}: platforms.{i}.trajectory.waypoints_m.{k}: {list(w)} is inside a building")
         if p.trajectory.kind == "waypoints":
             try:  # the route along roads and the motion under the limits, as the trajectory asset plans them
-                plan_platform(p, geom)
+                plans[i] = plan_platform(p, geom)
             except ValueError as exc:
                 problems.append(f"{where}: platforms.{i}.trajectory: {exc}")
         else:
@@ -73,14 +74,15 @@ def scene_problems(scene_dir: str | Path) -> tuple[SceneConfig | None, list[str]
         except ValueError as exc:
             problems.append(f"{where}: codebook.path: {exc}")
     problems += _extent_problems(cfg, geom, where)
-    problems += _ground_problems(cfg, geom, where)
+    problems += _ground_problems(cfg, geom, where, plans)
     return cfg, problems
 
 
-def _ground_problems(cfg: SceneConfig, geom, where: Path) -> list[str]:
-    """Base stations, waypoints and CKM planes below the ground surface of a source whose ground is
-    not the plane z = 0 (a mesh or Sionna scene with terrain): their heights are ENU z above the
-    origin, not above the ground, so on a hill they lie inside it."""
+def _ground_problems(cfg: SceneConfig, geom, where: Path, plans: dict | None = None) -> list[str]:
+    """Base stations, waypoints, planned paths (``plans``: platform index -> its motion plan) and
+    CKM planes below the ground surface of a source whose ground is not the plane z = 0 (a mesh or
+    Sionna scene with terrain): their heights are ENU z above the origin, not above the ground, so
+    on a hill they lie inside it."""
     if geom.ground_surface_m is None:
         return []
     from simart_pipeline.ckm.grid import cell_centres, outside_region
@@ -93,8 +95,10 @@ def _ground_problems(cfg: SceneConfig, geom, where: Path) -> list[str]:
                for i, b in enumerate(cfg.base_stations)]
     devices += [(f"platforms.{i}.trajectory.waypoints_m.{k}", str(list(w)), w)
                 for i, p in enumerate(cfg.platforms) for k, w in enumerate(getattr(p.trajectory, "waypoints_m", ()))]
-    qx = np.concatenate([[d[2][0] for d in devices], xx[traced]])
-    qy = np.concatenate([[d[2][1] for d in devices], yy[traced]])
+    paths = {i: _path_samples(plan) for i, plan in (plans or {}).items()}
+    path_xyz = np.concatenate([np.zeros((0, 3)), *paths.values()])
+    qx = np.concatenate([[d[2][0] for d in devices], xx[traced], path_xyz[:, 0]])
+    qy = np.concatenate([[d[2][1] for d in devices], yy[traced], path_xyz[:, 1]])
     ground = geometry.ground_elevation_m(geom, qx, qy)  # one interpolation for every point
     relief = geom.ground_surface_m[:, 2]
     above = f"heights are ENU z above the scene's origin, not above ground (the ground rises {relief.min():.1f} .. " \
@@ -104,7 +108,16 @@ def _ground_problems(cfg: SceneConfig, geom, where: Path) -> list[str]:
         if pos[2] < z:
             problems.append(f"{where}: {key}: {what} lies {z - pos[2]:.1f} m below the ground surface there "
                             f"({z:.1f} m): {above}")
-    cells = ground[len(devices):]
+    n_cells = int(traced.sum())
+    cells, start = ground[len(devices):len(devices) + n_cells], len(devices) + n_cells
+    for i, xyz in paths.items():
+        depth = ground[start:start + len(xyz)] - xyz[:, 2]
+        start += len(xyz)
+        if (depth > 0).any():  # waypoints above the ground, the path between them not (a ridge)
+            j = int(np.argmax(depth))
+            problems.append(f"{where}: platforms.{i}.trajectory: the planned path runs up to {depth[j]:.1f} m below "
+                            f"the ground surface (at {np.round(xyz[j], 1).tolist()}, the ground {xyz[j, 2] + depth[j]:.1f} "
+                            f"m): add waypoints over the rise; {above}")
     for k, h in enumerate(ckm.heights):
         below = cells > h
         if below.any():
@@ -146,6 +159,16 @@ def _extent_problems(cfg: SceneConfig, geom, where: Path) -> list[str]:
                         f"y {box.bounds[1]:g} .. {box.bounds[3]:g} m) lies {beyond}: move ckm.center_m or "
                         "shrink ckm.size_m")
     return problems
+
+
+def _path_samples(plan, step_m: float = 1.0, most: int = 20_000) -> np.ndarray:
+    """``[n, 3]`` points along a planned path, about ``step_m`` apart or closer (at most about ``most``)."""
+    p = plan.segment_samples()["position_m"]
+    length = float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum()) if len(p) > 1 else 0.0
+    segments = max(len(plan.seg_t0), 1)
+    # every segment as finely as if it were the whole path: segments differ in length
+    per_segment = int(np.clip(np.ceil(length / step_m) + 1, 2, max(most // segments, 2)))
+    return plan.segment_samples(per_segment)["position_m"]
 
 
 EXTENT_TOLERANCE_M = 0.01  # an OSM box's edges are parallels: curved in the local frame, by millimetres

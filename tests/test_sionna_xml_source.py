@@ -383,48 +383,57 @@ def test_sionna_xml_scene_materialises_through_dagster(canyon, tmp_path):
     assert cirs.sizes["time"] == 3 and bool(cirs["valid"].any())
 
 
-def _ramp(x0: float, x1: float, rise_m: float, half_y: float) -> trimesh.Trimesh:
-    """A ground rising linearly from z = 0 at x0 to ``rise_m`` at x1 (a hillside)."""
-    v = np.array([[x0, -half_y, 0], [x1, -half_y, rise_m], [x1, half_y, rise_m], [x0, half_y, 0]], float)
-    return trimesh.Trimesh(v, [[0, 1, 2], [0, 2, 3]], process=False)
+def _ridge(half_x: float, top_m: float, half_y: float) -> trimesh.Trimesh:
+    """A ground rising linearly from z = 0 at x = -half_x to ``top_m`` at x = 0 and down again."""
+    v = np.array([[-half_x, -half_y, 0], [0, -half_y, top_m], [0, half_y, top_m], [-half_x, half_y, 0],
+                  [half_x, -half_y, 0], [half_x, half_y, 0]], float)
+    return trimesh.Trimesh(v, [[0, 1, 2], [0, 2, 3], [1, 4, 5], [1, 5, 2]], process=False)
 
 
-def test_devices_and_ckm_planes_below_a_terrain_are_named_with_the_ground_there(tmp_path):
-    # a hillside z = 0.2 (x + 50) over x in [-50, 50]: a station and a waypoint below it, and the
-    # CKM plane at 1.5 m under the ground in every cell column but the first (centres x = -45, -35,
-    # ..., 45: ground 1, 3, ..., 19 m): 90 % of the cells
+def test_devices_paths_and_ckm_planes_below_a_terrain_are_named_with_the_ground_there(tmp_path):
+    # a ridge z = 0.4 (50 - |x|): a station 4 m below it; a UAV whose waypoints are above it and
+    # whose straight path between them crosses the ridge 4.86 m below its top (at x = 0: z = 22 -
+    # 12 x 40 / 70); the CKM plane at 7 m under the ground in the six middle cell columns of ten
+    # (centres x = -45 .. 45: ground 2, 6, 10, 14, 18, 18, 14, 10, 6, 2 m): 60 % of the cells
     d = tmp_path / "hill"
     d.mkdir()
-    shapes = {"tower": SHAPES["tower"], "floor": (_ramp(-50.0, 50.0, 20.0, 40.0), "ground")}
+    shapes = {"tower": SHAPES["tower"], "floor": (_ridge(50.0, 20.0, 40.0), "ground")}
     write_tiny_xml(d, shapes=shapes)
     raw = {"name": "hill", "origin": {"latitude_deg": 48.0, "longitude_deg": 11.0},
            "source": {"kind": "sionna_xml", "path": "scene.xml"},
-           "base_stations": [{"name": "bs0", "position_m": [25.0, 0.0, 12.0]}],   # ground 15 m
+           "base_stations": [{"name": "bs0", "position_m": [10.0, 0.0, 12.0]}],   # ground 16 m
            "platforms": [{"name": "p", "kind": "uav",
-                          "trajectory": {"waypoints_m": [[-40.0, -30.0, 30.0], [30.0, -30.0, 10.0]],  # ground 2, 16 m
+                          "trajectory": {"waypoints_m": [[-40.0, -30.0, 22.0], [30.0, -30.0, 10.0]],  # ground 4, 8 m
                                          "speed_mps": 5.0}}],
            "clock": {"duration_s": 1.0},
-           "ckm": {"center_m": [0.0, -30.0], "size_m": [100.0, 20.0], "cell_size_m": 10.0, "height_m": 1.5}}
+           "ckm": {"center_m": [0.0, -30.0], "size_m": [100.0, 20.0], "cell_size_m": 10.0, "height_m": 7.0}}
     (d / "scene.yaml").write_text(yaml.safe_dump(raw))
     cfg = load_scene_config(d)
     geom = build_source_geometry(cfg, d)
     np.testing.assert_allclose(geometry.ground_elevation_m(geom, [-50.0, 0.0, 25.0, 49.0], [0.0, 10.0, -5.0, 39.0]),
-                               [0.0, 10.0, 15.0, 19.8], atol=1e-6)
+                               [0.0, 20.0, 10.0, 0.4], atol=1e-6)
     _, problems = validation.scene_problems(d)
     where = f"{d / 'scene.yaml'}"
-    assert [p.split(": ")[1] for p in problems] == ["base_stations.0.position_m",
-                                                   "platforms.0.trajectory.waypoints_m.1", "ckm.height_m"]
-    assert problems[0].startswith(f"{where}: base_stations.0.position_m: bs0 at [25.0, 0.0, 12.0] lies 3.0 m below "
-                                  "the ground surface there (15.0 m)")
-    assert "lies 6.0 m below the ground surface there (16.0 m)" in problems[1]
-    assert "the plane at 1.5 m lies below the ground surface in 90 % of the grid's cells (the ground there: " \
-           "1.0 .. 19.0 m)" in problems[2]
+    assert [p.split(": ")[1] for p in problems] == ["base_stations.0.position_m", "platforms.0.trajectory",
+                                                   "ckm.height_m"]
+    assert problems[0].startswith(f"{where}: base_stations.0.position_m: bs0 at [10.0, 0.0, 12.0] lies 4.0 m below "
+                                  "the ground surface there (16.0 m)")
+    depth = float(problems[1].split("runs up to ")[1].split(" m below")[0])
+    assert depth == pytest.approx(4.86, abs=0.15) and "add waypoints over the rise" in problems[1]
+    assert "the plane at 7 m lies below the ground surface in 60 % of the grid's cells (the ground there: " \
+           "2.0 .. 18.0 m)" in problems[2]
     assert all("not above ground (the ground rises 0.0 .. 20.0 m)" in p for p in problems)
-    # raised above it, nothing to say; a flat ground at z = 0 keeps no surface at all
-    raw["base_stations"][0]["position_m"][2] = 16.0
-    raw["platforms"][0]["trajectory"]["waypoints_m"][1][2] = 17.0
+    # raised above it (and a waypoint over the ridge), nothing to say
+    raw["base_stations"][0]["position_m"][2] = 17.0
+    raw["platforms"][0]["trajectory"]["waypoints_m"].insert(1, [0.0, -30.0, 25.0])
     raw["ckm"]["height_m"] = 21.0
     (d / "scene.yaml").write_text(yaml.safe_dump(raw))
     assert validation.scene_problems(d)[1] == []
+    # a waypoint itself below the ground is named as such
+    raw["platforms"][0]["trajectory"]["waypoints_m"][1][2] = 19.0
+    (d / "scene.yaml").write_text(yaml.safe_dump(raw))
+    assert "platforms.0.trajectory.waypoints_m.1: [0.0, -30.0, 19.0] lies 1.0 m below the ground surface there " \
+           "(20.0 m)" in validation.scene_problems(d)[1][0]
+    # a flat ground at z = 0 keeps no surface at all
     write_tiny_xml(d, shapes={"tower": SHAPES["tower"], "floor": SHAPES["floor"]})
     assert build_source_geometry(load_scene_config(d), d).ground_surface_m is None
