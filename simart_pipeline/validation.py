@@ -116,8 +116,8 @@ def _ground_problems(cfg: SceneConfig, geom, where: Path, plans: dict | None = N
         if (depth > 0).any():  # waypoints above the ground, the path between them not (a ridge)
             j = int(np.argmax(depth))
             problems.append(f"{where}: platforms.{i}.trajectory: the planned path runs up to {depth[j]:.1f} m below "
-                            f"the ground surface (at {np.round(xyz[j], 1).tolist()}, the ground {xyz[j, 2] + depth[j]:.1f} "
-                            f"m): add waypoints over the rise; {above}")
+                            f"the ground surface (at {np.round(xyz[j], 1).tolist()}, the ground "
+                            f"{xyz[j, 2] + depth[j]:.1f} m): add waypoints over the rise; {above}")
     for k, h in enumerate(ckm.heights):
         below = cells > h
         if below.any():

@@ -101,7 +101,8 @@ def test_an_alley_narrower_than_a_cell_is_masked_in_fast_mode_and_the_map_says_s
     mask's 4 sample rows). Fast mode masks them (the one-pass divides a cell's sums by its outdoor
     share); cell_masked and cell_outdoor_fraction say so, where cell_inside_building (the centre)
     cannot."""
-    cfg = _cfg(tiny_scene, lambda raw: _single_bs_iso(raw, {"mode": "fast", "num_rays": 200_000, "size_m": [80.0, 30.0]}))
+    cfg = _cfg(tiny_scene, lambda raw: _single_bs_iso(raw, {"mode": "fast", "num_rays": 200_000,
+                                                            "size_m": [80.0, 30.0]}))
     blocks = {}
     for name, y0, y1 in (("south", -20.0, -0.5), ("north", 1.5, 20.0)):
         b = trimesh.creation.box(extents=[60.0, y1 - y0, 30.0])

@@ -279,7 +279,8 @@ def layers_dataset(layers: dict, cfg: SceneConfig, grid: TileGrid, B: int, maske
     data["cell_outdoor_fraction"] = (("height", "y", "x"), np.asarray(frac, np.float32),
                                      dict(units="1", long_name=f"share of the cell's area outside buildings "
                                           f"({OUTDOOR_SAMPLES_PER_AXIS} x {OUTDOOR_SAMPLES_PER_AXIS} points)",
-                                          nan_means="reference mode: not computed (a cell is traced at its centre)"))
+                                          nan_means="not computed: reference mode (a cell is traced at its centre), or "
+                                          "a tile with no cell to trace"))
     coords = map_coords(cfg, grid)
     if "beam_gain_db" in layers:
         coords["beam"] = ("beam", data_coords_beam, dict(long_name="codebook beam index"))

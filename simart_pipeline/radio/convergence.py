@@ -25,7 +25,7 @@ import numpy as np
 from simart_pipeline.quality import CheckResult
 
 CHECK_FACTOR = 10  # the second trace's samples per source, times the configured
-CHECK_RECEIVERS = 8  # receivers traced twice (spread over the session or the tile)
+CHECK_RECEIVERS = 8  # receivers traced twice (spread over the session, or over a map's cells)
 GAIN_TOLERANCE_DB = 1.0  # a link's path gain may move this much with 10x the samples
 # ... and its RMS delay spread this much, or this share of the finer trace's, whichever is larger:
 # a few ns is sampling noise in the weak paths; tens of ns is a missing far path
