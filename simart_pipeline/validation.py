@@ -78,7 +78,7 @@ def scene_problems(scene_dir: str | Path) -> tuple[SceneConfig | None, list[str]
     return cfg, problems
 
 
-def _ground_problems(cfg: SceneConfig, geom, where: Path, plans: dict | None = None) -> list[str]:
+def _ground_problems(cfg: SceneConfig, geom, where: Path, plans: dict) -> list[str]:
     """Base stations, waypoints, planned paths (``plans``: platform index -> its motion plan) and
     CKM planes below the ground surface of a source whose ground is not the plane z = 0 (a mesh or
     Sionna scene with terrain): their heights are ENU z above the origin, not above the ground, so
@@ -91,11 +91,8 @@ def _ground_problems(cfg: SceneConfig, geom, where: Path, plans: dict | None = N
     y, x = cell_centres(ckm)
     xx, yy = np.meshgrid(x, y)
     traced = ~outside_region(ckm, x, y)
-    devices = [(f"base_stations.{i}.position_m", f"{b.name} at {list(b.position_m)}", b.position_m)
-               for i, b in enumerate(cfg.base_stations)]
-    devices += [(f"platforms.{i}.trajectory.waypoints_m.{k}", str(list(w)), w)
-                for i, p in enumerate(cfg.platforms) for k, w in enumerate(getattr(p.trajectory, "waypoints_m", ()))]
-    paths = {i: _path_samples(plan) for i, plan in (plans or {}).items()}
+    devices = _placements(cfg)
+    paths = {i: _path_samples(plan) for i, plan in plans.items()}
     path_xyz = np.concatenate([np.zeros((0, 3)), *paths.values()])
     qx = np.concatenate([[d[2][0] for d in devices], xx[traced], path_xyz[:, 0]])
     qy = np.concatenate([[d[2][1] for d in devices], yy[traced], path_xyz[:, 1]])
@@ -142,14 +139,8 @@ def _extent_problems(cfg: SceneConfig, geom, where: Path) -> list[str]:
     x0, y0, x1, y1 = (round(v, 1) for v in extent.bounds)
     hint = _WIDER_SOURCE.get(cfg.source.kind)
     beyond = f"beyond the scene's ground (x {x0} .. {x1} m, y {y0} .. {y1} m{'; ' + hint if hint else ''})"
-    problems = []
-    for i, b in enumerate(cfg.base_stations):
-        if not held.covers(shapely.Point(b.position_m[:2])):
-            problems.append(f"{where}: base_stations.{i}.position_m: {b.name} at {list(b.position_m)} lies {beyond}")
-    for i, p in enumerate(cfg.platforms):
-        for k, w in enumerate(getattr(p.trajectory, "waypoints_m", ())):
-            if not held.covers(shapely.Point(w[:2])):
-                problems.append(f"{where}: platforms.{i}.trajectory.waypoints_m.{k}: {list(w)} lies {beyond}")
+    problems = [f"{where}: {key}: {what} lies {beyond}" for key, what, pos in _placements(cfg)
+                if not held.covers(shapely.Point(pos[:2]))]
     ckm = cfg.ckm
     box = shapely.box(ckm.center_m[0] - ckm.size_m[0] / 2, ckm.center_m[1] - ckm.size_m[1] / 2,
                       ckm.center_m[0] + ckm.size_m[0] / 2, ckm.center_m[1] + ckm.size_m[1] / 2)
@@ -159,6 +150,14 @@ def _extent_problems(cfg: SceneConfig, geom, where: Path) -> list[str]:
                         f"y {box.bounds[1]:g} .. {box.bounds[3]:g} m) lies {beyond}: move ckm.center_m or "
                         "shrink ckm.size_m")
     return problems
+
+
+def _placements(cfg: SceneConfig) -> list[tuple[str, str, tuple]]:
+    """(config key, what it is, position m) of every base station and waypoint of the scene."""
+    out = [(f"base_stations.{i}.position_m", f"{b.name} at {list(b.position_m)}", b.position_m)
+           for i, b in enumerate(cfg.base_stations)]
+    return out + [(f"platforms.{i}.trajectory.waypoints_m.{k}", str(list(w)), w)
+                  for i, p in enumerate(cfg.platforms) for k, w in enumerate(getattr(p.trajectory, "waypoints_m", ()))]
 
 
 def _path_samples(plan, step_m: float = 1.0, most: int = 20_000) -> np.ndarray:

@@ -244,10 +244,11 @@ def tile_layers(radio, cfg: SceneConfig, geom: SourceGeometry, tile: str, scene_
     return ds
 
 
-def layers_dataset(layers: dict, cfg: SceneConfig, grid: TileGrid, B: int, masked: np.ndarray | None = None,
-                   outdoor_fraction: np.ndarray | None = None) -> xr.Dataset:
+def layers_dataset(layers: dict, cfg: SceneConfig, grid: TileGrid, B: int, masked: np.ndarray,
+                   outdoor_fraction: np.ndarray) -> xr.Dataset:
     """The tile's dataset: ``layers`` ``[B, H, y, x]`` with their attrs, the masks and the cells'
-    outdoor share (``masked`` / ``outdoor_fraction``: ``[H, y, x]``, default the tile's mask and NaN)."""
+    outdoor share (``masked``: every cell the mode masked, ``outdoor_fraction``: NaN where not
+    computed; both ``[H, y, x]``)."""
     d4 = ("bs", "height", "y", "x")
     data = {}
     for name, v in layers.items():
@@ -273,10 +274,8 @@ def layers_dataset(layers: dict, cfg: SceneConfig, grid: TileGrid, B: int, maske
                                     dict(long_name="cell centre inside a building: masked, not traced"))
     data["cell_outside_region"] = (("y", "x"), grid.outside_region,
                                    dict(long_name="cell centre outside the region of interest: masked, not traced"))
-    data["cell_masked"] = (("height", "y", "x"), ~grid.traced if masked is None else np.asarray(masked, bool),
-                           dict(long_name=CELL_MASKED))
-    frac = np.full(grid.traced.shape, np.nan) if outdoor_fraction is None else outdoor_fraction
-    data["cell_outdoor_fraction"] = (("height", "y", "x"), np.asarray(frac, np.float32),
+    data["cell_masked"] = (("height", "y", "x"), np.asarray(masked, bool), dict(long_name=CELL_MASKED))
+    data["cell_outdoor_fraction"] = (("height", "y", "x"), np.asarray(outdoor_fraction, np.float32),
                                      dict(units="1", long_name=f"share of the cell's area outside buildings "
                                           f"({OUTDOOR_SAMPLES_PER_AXIS} x {OUTDOOR_SAMPLES_PER_AXIS} points)",
                                           nan_means="not computed: reference mode (a cell is traced at its centre), or "

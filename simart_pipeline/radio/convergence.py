@@ -91,17 +91,23 @@ def spread_receivers(candidates: np.ndarray, num: int = CHECK_RECEIVERS) -> np.n
     return np.unique(np.linspace(0, n - 1, min(num, n)).round().astype(np.int64)) if n else np.zeros(0, np.int64)
 
 
-def link_power_and_spread(paths) -> tuple[np.ndarray, np.ndarray]:
-    """Total path gain (mean over antenna pairs of ``sum_p |a_p|^2``) and RMS delay spread of each
-    (transmitter, receiver) link of :class:`~simart_pipeline.radio.tracer.TracedPaths`, ``[num_tx,
-    num_rx]``; 0 and NaN where a link has no path."""
-    p = np.where(paths.valid, np.mean(np.abs(paths.a.astype(np.complex128)) ** 2, axis=(1, 3)), 0.0)  # [rx, tx, path]
-    tau = np.where(paths.valid, paths.tau_s, 0.0)
-    total = p.sum(-1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = (p * tau).sum(-1) / total
-        spread = np.sqrt(np.maximum((p * tau**2).sum(-1) / total - mean**2, 0.0))
-    return total.T, np.where(total > 0, spread, np.nan).T
+def link_gain_and_spread(paths) -> tuple[np.ndarray, np.ndarray]:
+    """Path gain (dB, incoherent, antenna-pair mean) and RMS delay spread (s) of each (transmitter,
+    receiver) link of :class:`~simart_pipeline.radio.tracer.TracedPaths`, ``[num_tx, num_rx]``: the
+    reference CKM's definitions (:func:`~simart_pipeline.ckm.moments.path_moments`,
+    :func:`~simart_pipeline.ckm.moments.layers_from_moments`); NaN where a link has no path."""
+    from simart_pipeline.ckm import moments as mom
+
+    def per_link(v):  # [rx, tx, ...] -> [tx, rx, ...]
+        return np.swapaxes(np.asarray(v), 0, 1)
+
+    power = per_link(np.mean(np.abs(paths.a.astype(np.complex128)) ** 2, axis=(1, 3)))  # [tx, rx, path]
+    valid, tau = per_link(paths.valid), per_link(paths.tau_s)
+    first = np.min(np.where(valid, tau, np.inf), axis=-1, initial=np.inf)  # delays relative to the first path's
+    angles = per_link(np.stack([paths.phi_r, paths.theta_r, paths.phi_t, paths.theta_t], axis=-1))
+    layers = mom.layers_from_moments(mom.path_moments(power, tau, valid, per_link(paths.los), angles,
+                                                      np.where(np.isfinite(first), first, 0.0)))
+    return layers["path_gain_db"], layers["rms_delay_spread_s"]
 
 
 def sampling_convergence(radio, tx_position_m: np.ndarray, tx_orientation_rad: np.ndarray,
@@ -118,11 +124,10 @@ def sampling_convergence(radio, tx_position_m: np.ndarray, tx_orientation_rad: n
     try:
         for solver in (cfg, fine):
             radio.solver_config = solver
-            power, spread = link_power_and_spread(radio.trace(
+            gain, spread = link_gain_and_spread(radio.trace(
                 np.asarray(tx_position_m, np.float64), np.asarray(tx_orientation_rad, np.float64),
                 np.asarray(rx_position_m, np.float64), deterministic=deterministic))
-            with np.errstate(divide="ignore"):
-                gains.append(np.where(power > 0, 10.0 * np.log10(power), -np.inf))
+            gains.append(np.where(np.isnan(gain), -np.inf, gain))
             spreads.append(spread)
     finally:
         radio.solver_config = cfg
