@@ -900,6 +900,29 @@ def test_radio_map_mean_of_runs_is_the_linear_mean_with_a_miss_as_zero_power():
         rma.halves_db(runs[:1])
 
 
+def test_radio_map_standard_error_and_converged_cells_known_answers():
+    """benchmarks.radio_map_agreement: the standard error of the runs' mean, known answers. Equal
+    runs: 0 dB; runs of 1 and 3 (linear) have mean 2 and sample deviation sqrt(2), so the mean is
+    known to 1 in 2, 10 log10(1.5) dB; 0 dB and a miss: mean 0.5, deviation sqrt(0.5), error
+    0.5 in 0.5, 3.01 dB; every run missed: NaN. Converged cells: every run values them and the
+    error is at most the bound (with the bound between the cells' errors exactly those below it)."""
+    from benchmarks import radio_map_agreement as rma
+
+    runs = np.array([[-70.0, 0.0, 0.0, np.nan, -50.0],
+                     [-70.0, 10 * np.log10(3.0), np.nan, np.nan, -50.0 + 10 * np.log10(1.01)]])
+    se = rma.standard_error_db(runs)
+    assert se[0] == pytest.approx(0.0, abs=1e-12)
+    assert se[1] == pytest.approx(10 * np.log10(1.5), abs=1e-12)
+    assert se[2] == pytest.approx(10 * np.log10(2.0), abs=1e-12)
+    assert np.isnan(se[3])
+    # 1 and 1.01: mean 1.005, deviation 0.01 / sqrt(2), error 0.005 / 1.005
+    assert se[4] == pytest.approx(10 * np.log10(1 + 0.005 / 1.005), abs=1e-12)
+    assert list(rma.converged_cells(runs, 0.05)) == [True, False, False, False, True]
+    assert list(rma.converged_cells(runs, 0.01)) == [True, False, False, False, False]
+    with pytest.raises(ValueError, match="at least 2"):
+        rma.standard_error_db(runs[:1])
+
+
 def test_radio_map_agreement_on_the_canyon_has_no_power_offset(tmp_path):
     """benchmarks.radio_map_agreement end to end on the street canyon at 1e6 rays (RadioMapSolver
     as two runs of 5e5): the one-pass like for like sits on RadioMapSolver's map, a median signed
@@ -918,6 +941,21 @@ def test_radio_map_agreement_on_the_canyon_has_no_power_offset(tmp_path):
         assert a["cells_both"] > 0.7 * rm["cells_valued"], a
         assert abs(a["median_signed_diff_db"]) < 1.0 and a["abs_diff_db"]["p50"] < 2.5, a
     assert (tmp_path / "report.md").read_text().count("| street_canyon |") == 1
+    # where RadioMapSolver has converged: with two runs a, b (linear) the error is |a - b| / (a + b),
+    # so at most e = 10^0.005 - 1 holds their difference to 10 log10((1 + e) / (1 - e)) dB
+    e = 10 ** (rma.CONVERGED_ERROR_DB / 10) - 1
+    assert 0 < rm["cells_converged"] < rm["cells_valued"]
+    assert rm["halves_where_converged"]["cells_both"] == rm["cells_converged"]
+    saved = np.load(tmp_path / "street_canyon_maps.npz")
+    runs = saved["radio_map_solver_runs_db"]
+    assert runs.shape[0] == 2
+    converged = rma.converged_cells(runs)
+    assert converged.sum() == rm["cells_converged"]
+    assert np.abs(runs[0] - runs[1])[converged].max() <= 10 * np.log10((1 + e) / (1 - e)) + 1e-4
+    for n in ("200000", "1000000"):
+        c = r["one_pass"][n]["where_radio_map_solver_converged"]
+        assert c["cells_both"] <= rm["cells_converged"]
+        np.testing.assert_array_equal(np.isfinite(saved[f"one_pass_{n}_db"]).sum(), r["one_pass"][n]["cells_valued"])
     with pytest.raises(SystemExit):
         rma.main(["--out", str(tmp_path), "--runs", "3"])
 
