@@ -82,7 +82,8 @@ tr38901 pattern:
   coverage at the main ray count, over RadioMapSolver's time there; the two models like for like
   at 1e8 rays, where the Monte-Carlo floor of the path gain comparison is sqrt(10) lower.
 - where both converge: :mod:`benchmarks.radio_map_agreement` (RadioMapSolver at 1e9 rays as the
-  mean of ten seeded runs; about an hour on 2 cores, so not part of this benchmark).
+  mean of ten seeded runs, also judged on the cells where that mean's standard error is at most
+  0.05 dB; about an hour on 2 cores, so not part of this benchmark).
 
 Ray count against error (the sets of :data:`SWEEP_SETS`; above the main ray count only on the scenes
 it names): the one-pass (V, as against PathSolver) and RadioMapSolver at 1e5 .. 1e8 rays
