@@ -45,7 +45,9 @@ Per scene and set:
   the centres of a random subset of the compared cells at :data:`CONVERGED_REFERENCE_SAMPLES`
   (:func:`against_converged_reference`: the errors against a reference whose reflection-diffraction
   chains have converged further; with diffuse reflection its diffuse paths from a deterministic run
-  at :data:`CONVERGED_DIFFUSE_SAMPLES`; ``--converged-points 9``: at 3 x 3 points per cell, 9x the time);
+  at :data:`CONVERGED_DIFFUSE_SAMPLES`; ``--converged-points 9``: at 3 x 3 points per cell, 9x the time;
+  the errors also split by whether that reference has settled in the cell, traced again with a tenth
+  of its samples, :func:`settled_cells`);
 - **speed**: the one-pass time for the whole grid (warm: kernels compiled), one PathSolver call per
   cell (timed on random outdoor cells, at most :data:`LOOP_CELLS` calls or :data:`LOOP_BUDGET_S`
   seconds, and extrapolated to the grid's cells with outdoor area, which the reference mode would
@@ -230,6 +232,14 @@ CONVERGED_REFERENCE_SAMPLES = 10**8
 # 34"). Traced CONVERGED_CELLS_PER_TRACE cells at a time.
 CONVERGED_DIFFUSE_SAMPLES = 10**7
 CONVERGED_CELLS_PER_TRACE = 2
+# Which of those cells the converged reference has itself settled in: the same cells traced again
+# with 1 / CONVERGED_SETTLE_FACTOR of its samples (both runs'); a cell has settled where both traces
+# reach it, its path gain and RMS delay spread move within the sampling check's tolerances
+# (radio.convergence: 1 dB; max(10 ns, 20 % of the finer trace's)) and its best beam stays. The
+# errors are also given on those cells alone: elsewhere (Munich's cells behind the station, 17-23 dB
+# apart between 1e6 and 1e7 diffuse samples, session 34) a difference says how far PathSolver is from
+# its own limit as much as how far the one-pass is from it.
+CONVERGED_SETTLE_FACTOR = 10
 # The estimator's own convergence, apart from PathSolver's: the one-pass map against the same
 # solver's map with CONVERGED_SAMPLES_FACTOR times the diffraction samples and point deposits (the
 # unbiased estimator; on Munich its 8x map is within 1.7 dB p95 of its 32x one), and the point
@@ -736,36 +746,74 @@ def reference_check(radio, tx, ori, centres_xyz: np.ndarray, fast_at: dict, ref_
             "signed_err_db_this_reference": np.round(fast_g - after, 2).tolist()}
 
 
+def settled_cells(coarse: dict, fine: dict) -> np.ndarray:
+    """The cells whose reference layers ``fine`` (more samples) and ``coarse`` agree
+    (:data:`CONVERGED_SETTLE_FACTOR`): both reach the cell, the path gain moves by at most
+    ``GAIN_TOLERANCE_DB``, the RMS delay spread by at most max(``DELAY_SPREAD_TOLERANCE_S``,
+    ``DELAY_SPREAD_TOLERANCE_REL`` of the finer one's) where both hold one (the sampling check's
+    rule, :mod:`simart_pipeline.radio.convergence`), and the best beam is the same."""
+    from simart_pipeline.radio import convergence as conv
+
+    both = coarse["has_path"] & fine["has_path"]
+    gain_ok = np.abs(coarse["path_gain_db"] - fine["path_gain_db"]) <= conv.GAIN_TOLERANCE_DB
+    ds_c, ds_f = coarse["rms_delay_spread_s"], fine["rms_delay_spread_s"]
+    ds_tol = np.maximum(conv.DELAY_SPREAD_TOLERANCE_S, conv.DELAY_SPREAD_TOLERANCE_REL * np.nan_to_num(ds_f))
+    ds_ok = ~(np.isfinite(ds_c) & np.isfinite(ds_f)) | (np.abs(ds_c - ds_f) <= ds_tol)
+    return both & gain_ok & ds_ok & (coarse["best_beam"] == fine["best_beam"])
+
+
+def _subset(layers: dict, sel: np.ndarray) -> dict:
+    """The layers (arrays over cells first) of the cells ``sel`` (a boolean mask)."""
+    return {k: v[sel] if isinstance(v, np.ndarray) and v.shape[:1] == sel.shape else v for k, v in layers.items()}
+
+
 def against_converged_reference(radio, tx, ori, centres_xyz: np.ndarray, fast_at: dict, codebook,
                                 samples: int = CONVERGED_REFERENCE_SAMPLES, points_per_cell: int = 1,
-                                diffuse_samples: int = CONVERGED_DIFFUSE_SAMPLES) -> dict:
+                                diffuse_samples: int = CONVERGED_DIFFUSE_SAMPLES,
+                                settle_factor: int = CONVERGED_SETTLE_FACTOR) -> dict:
     """PathSolver at ``samples`` per source (Sionna's default candidate generator) at the cell
     centres ``centres_xyz`` [cells, 3] (``points_per_cell`` 9: at 3 x 3 points per cell, like the main
     reference, 9x the time): the one-pass layers ``fast_at`` of those cells against it
     (:func:`_compare`: at the centres, and against the 3 x 3 points pooled), the cells each
     reaches, and the time. With diffuse reflection on, the diffuse paths come from a deterministic
     run at ``diffuse_samples`` (:func:`merged_paths`, :data:`CONVERGED_DIFFUSE_SAMPLES`), traced
-    :data:`CONVERGED_CELLS_PER_TRACE` cells at a time."""
+    :data:`CONVERGED_CELLS_PER_TRACE` cells at a time. With ``settle_factor`` > 1 the centres are
+    traced again with 1 / ``settle_factor`` of both runs' samples, and the errors at the centres are
+    also given on the cells where the two agree (:func:`settled_cells`)."""
     if points_per_cell not in (1, 9):
         raise ValueError(f"points_per_cell must be 1 or 9, got {points_per_cell}")
     diffuse = bool(radio.solver_config.diffuse_reflection)
 
-    def trace(points):
-        with _samples(radio, samples, diffuse_reflection=False):
-            paths = radio.trace(tx[None], ori[None], points, deterministic=False)
-        if diffuse:
-            with _samples(radio, diffuse_samples):
-                paths = merged_paths(paths, radio.trace(tx[None], ori[None], points))
-        return paths
+    def tracer(n, n_diffuse):
+        def trace(points):
+            with _samples(radio, n, diffuse_reflection=False):
+                paths = radio.trace(tx[None], ori[None], points, deterministic=False)
+            if diffuse:
+                with _samples(radio, n_diffuse):
+                    paths = merged_paths(paths, radio.trace(tx[None], ori[None], points))
+            return paths
+        return trace
 
+    per_trace = CONVERGED_CELLS_PER_TRACE if diffuse else len(centres_xyz)
     ref, pooled, s, _ = _layers_in_parts(tx, centres_xyz, codebook, 1 if points_per_cell == 1 else 3,
-                                         CONVERGED_CELLS_PER_TRACE if diffuse else len(centres_xyz), trace)
+                                         per_trace, tracer(samples, diffuse_samples))
     out = {"samples_per_src": int(samples), "generator": "default (non-deterministic)", "cells": int(len(centres_xyz)),
            "points_per_cell": points_per_cell, "s": round(s, 1),
            "diffuse_samples_per_src": int(diffuse_samples) if diffuse else None}
     out.update(reached_by_pathsolver=int(ref["has_path"].sum()),
                covered_of_reached_pct=_covered_of_reached_pct(fast_at["has_path"], ref["has_path"]),
                errors_vs_centre=_compare(fast_at, ref))
+    if settle_factor > 1:
+        coarse, _, s_coarse, _ = _layers_in_parts(tx, centres_xyz, codebook, 1, per_trace,
+                                                  tracer(samples // settle_factor, diffuse_samples // settle_factor))
+        settled = settled_cells(coarse, ref)
+        out["settled"] = {"samples_per_src": int(samples // settle_factor),
+                          "diffuse_samples_per_src": int(diffuse_samples // settle_factor) if diffuse else None,
+                          "s": round(s_coarse, 1), "cells": int(settled.sum()),
+                          "cells_reached": int(ref["has_path"].sum()),
+                          "settled_cell_index": np.flatnonzero(settled).tolist(),
+                          "errors_vs_centre": _compare(_subset(fast_at, settled), _subset(ref, settled)),
+                          "errors_vs_centre_unsettled": _compare(_subset(fast_at, ~settled), _subset(ref, ~settled))}
     if points_per_cell == 9:  # the cell: reached where any of its nine points is
         out.update(reached_by_pathsolver_cell_points=int(pooled["has_path"].sum()),
                    covered_of_reached_pct_cell_points=_covered_of_reached_pct(fast_at["has_path"], pooled["has_path"]),
@@ -1459,6 +1507,26 @@ def _converged_reference_lines(results: dict) -> list[str]:
         "shadow edge crosses the cell: these errors bound the one-pass's from above). The main reference's figures "
         "for the same set are in the tables above.", columns,
         lambda c: row(c, c["errors_vs_centre"], c["reached_by_pathsolver"], c["covered_of_reached_pct"]))
+    settled = [(n, st, r["against_converged_reference"]) for n, st, r in _each_set(results)
+               if (r.get("against_converged_reference") or {}).get("settled")]
+    if settled:
+        def settled_row(c, e):
+            return (f"{_pp(e['path_gain_db'])} | {_f(e['toa_ns']['p50'])} | {_pp(e['rms_delay_spread_ns'])} | "
+                    f"{_f(largest_spread_p50(e))} | {_f(e['best_beam_agreement_pct'])} | "
+                    f"{_f(e.get('best_beam_top3_agreement_pct'))}")
+
+        lines += ["", "The same at the centres, split by whether the converged reference has settled there: traced "
+                  f"again with 1/{CONVERGED_SETTLE_FACTOR} of its samples, both reach the cell, its gain moves by "
+                  "at most 1 dB, its delay spread by at most max(10 ns, 20 %) and its best beam stays "
+                  "(`settled_cells`). Elsewhere the reference is still moving with its samples:", "",
+                  "| scene | set | settled / reached | settled: gain dB p50 / p95 | ToA ns p50 | DS ns p50 / p95 | "
+                  "spreads deg p50 | best beam % | top-3 % | not settled: gain dB p50 / p95 | best beam % | top-3 % |",
+                  "|---" * 12 + "|"]
+        for n, st, c in settled:
+            u = c["settled"]["errors_vs_centre_unsettled"]
+            lines.append(f"| {n} | {st} | {c['settled']['cells']} / {c['settled']['cells_reached']} | "
+                         f"{settled_row(c, c['settled']['errors_vs_centre'])} | {_pp(u['path_gain_db'])} | "
+                         f"{_f(u['best_beam_agreement_pct'])} | {_f(u.get('best_beam_top3_agreement_pct'))} |")
     pooled = [(n, st, r["against_converged_reference"]) for n, st, r in _each_set(results)
               if (r.get("against_converged_reference") or {}).get("errors_vs_cell_points")]
     if pooled:

@@ -747,7 +747,7 @@ def test_converged_reference_with_diffuse_reflection_merges_a_deterministic_diff
             "beam_gain_db": np.zeros((5, 1)), **{k: np.zeros(5) for k in cs.SPREADS}}
     radio = Radio()
     out = cs.against_converged_reference(radio, np.zeros(3), np.zeros(3), centres, fast, codebook,
-                                         samples=1000, diffuse_samples=100)
+                                         samples=1000, diffuse_samples=100, settle_factor=1)
     assert radio.solver_config == Config(10, True)  # restored
     assert [c[:3] for c in calls] == [(1000, False, False), (100, True, True)] * 3
     assert [c[3] for c in calls[::2]] == [[0.0, 10.0], [20.0, 30.0], [40.0]]
@@ -755,13 +755,48 @@ def test_converged_reference_with_diffuse_reflection_merges_a_deterministic_diff
     want_db = 10 * np.log10((1e-4 * np.arange(1, 6)) ** 2 + (3e-5 * np.arange(1, 6)) ** 2)
     np.testing.assert_allclose(out["errors_vs_centre"]["path_gain_db"]["p50"], np.median(np.abs(want_db)), rtol=1e-4)
     assert out["diffuse_samples_per_src"] == 100 and out["reached_by_pathsolver"] == 5
+    assert "settled" not in out
+    # settled cells: the same cells again at a tenth of both runs' samples; this stub's paths do not
+    # depend on the samples, so every cell has settled and the errors there are the errors
+    calls.clear()
+    out = cs.against_converged_reference(radio, np.zeros(3), np.zeros(3), centres, fast, codebook,
+                                         samples=1000, diffuse_samples=100)
+    assert [c[:3] for c in calls] == [(1000, False, False), (100, True, True)] * 3 + [(100, False, False), (10, True, True)] * 3
+    st = out["settled"]
+    assert (st["cells"], st["cells_reached"], st["samples_per_src"], st["diffuse_samples_per_src"]) == (5, 5, 100, 10)
+    assert st["settled_cell_index"] == [0, 1, 2, 3, 4]
+    assert st["errors_vs_centre"]["path_gain_db"] == out["errors_vs_centre"]["path_gain_db"]
+    assert st["errors_vs_centre_unsettled"]["cells"] == 0 and st["errors_vs_centre_unsettled"]["best_beam_agreement_pct"] is None
     # diffuse reflection off (the diffraction set): one default-generator run of every cell
     calls.clear()
     radio.solver_config = Config(10, False)
     out = cs.against_converged_reference(radio, np.zeros(3), np.zeros(3), centres, fast, codebook, samples=1000)
-    assert [c[:3] for c in calls] == [(1000, False, False)] and out["diffuse_samples_per_src"] is None
+    assert [c[:3] for c in calls] == [(1000, False, False), (100, False, False)]  # and the settle trace
+    assert out["diffuse_samples_per_src"] is None and out["settled"]["diffuse_samples_per_src"] is None
     np.testing.assert_allclose(out["errors_vs_centre"]["path_gain_db"]["p95"],
                                np.percentile(np.abs(20 * np.log10(1e-4 * np.arange(1, 6))), 95), rtol=1e-4)
+
+
+def test_settled_cells_follow_the_sampling_checks_tolerances():
+    """ckm_solver.settled_cells, known answers: a cell has settled where both traces reach it, the
+    gain moves by at most 1 dB, the delay spread by at most max(10 ns, 20 % of the finer one's)
+    (where both hold one) and the best beam stays; each rule broken once."""
+    from benchmarks import ckm_solver as cs
+
+    fine = {"has_path": np.array([True] * 7 + [True]), "path_gain_db": np.full(8, -100.0),
+            "rms_delay_spread_s": np.array([100e-9] * 6 + [np.nan, 20e-9]), "best_beam": np.zeros(8, int)}
+    coarse = {k: v.copy() for k, v in fine.items()}
+    coarse["path_gain_db"][1] = -101.01        # gain moved by more than 1 dB
+    coarse["path_gain_db"][2] = -100.99        # by less
+    coarse["rms_delay_spread_s"][3] = 121e-9   # 21 ns against 20 % of 100 ns
+    coarse["rms_delay_spread_s"][4] = 80.5e-9  # 19.5 ns
+    coarse["best_beam"][5] = 3                 # another best beam
+    coarse["rms_delay_spread_s"][7] = 29e-9    # 9 ns: within the 10 ns floor
+    coarse["has_path"] = coarse["has_path"].copy()
+    settled = cs.settled_cells(coarse, fine)
+    assert settled.tolist() == [True, False, True, False, True, False, True, True]
+    coarse["has_path"][0] = False             # one trace does not reach it
+    assert not cs.settled_cells(coarse, fine)[0]
 
 
 def test_equal_error_front_finds_the_fewest_one_pass_rays_at_radio_map_solvers_error():
