@@ -748,18 +748,15 @@ def reference_check(radio, tx, ori, centres_xyz: np.ndarray, fast_at: dict, ref_
 
 def settled_cells(coarse: dict, fine: dict) -> np.ndarray:
     """The cells whose reference layers ``fine`` (more samples) and ``coarse`` agree
-    (:data:`CONVERGED_SETTLE_FACTOR`): both reach the cell, the path gain moves by at most
-    ``GAIN_TOLERANCE_DB``, the RMS delay spread by at most max(``DELAY_SPREAD_TOLERANCE_S``,
-    ``DELAY_SPREAD_TOLERANCE_REL`` of the finer one's) where both hold one (the sampling check's
-    rule, :mod:`simart_pipeline.radio.convergence`), and the best beam is the same."""
-    from simart_pipeline.radio import convergence as conv
+    (:data:`CONVERGED_SETTLE_FACTOR`): both reach the cell, its path gain and RMS delay spread agree
+    by the sampling checks' rule (:func:`simart_pipeline.radio.convergence.within_tolerance`), and
+    the best beam is the same."""
+    from simart_pipeline.radio.convergence import within_tolerance
 
     both = coarse["has_path"] & fine["has_path"]
-    gain_ok = np.abs(coarse["path_gain_db"] - fine["path_gain_db"]) <= conv.GAIN_TOLERANCE_DB
-    ds_c, ds_f = coarse["rms_delay_spread_s"], fine["rms_delay_spread_s"]
-    ds_tol = np.maximum(conv.DELAY_SPREAD_TOLERANCE_S, conv.DELAY_SPREAD_TOLERANCE_REL * np.nan_to_num(ds_f))
-    ds_ok = ~(np.isfinite(ds_c) & np.isfinite(ds_f)) | (np.abs(ds_c - ds_f) <= ds_tol)
-    return both & gain_ok & ds_ok & (coarse["best_beam"] == fine["best_beam"])
+    agree = within_tolerance(np.stack([coarse["path_gain_db"], fine["path_gain_db"]]),
+                             np.stack([coarse["rms_delay_spread_s"], fine["rms_delay_spread_s"]]))
+    return both & agree & (coarse["best_beam"] == fine["best_beam"])
 
 
 def _subset(layers: dict, sel: np.ndarray) -> dict:

@@ -783,7 +783,7 @@ def test_settled_cells_follow_the_sampling_checks_tolerances():
     (where both hold one) and the best beam stays; each rule broken once."""
     from benchmarks import ckm_solver as cs
 
-    fine = {"has_path": np.array([True] * 7 + [True]), "path_gain_db": np.full(8, -100.0),
+    fine = {"has_path": np.ones(8, bool), "path_gain_db": np.full(8, -100.0),
             "rms_delay_spread_s": np.array([100e-9] * 6 + [np.nan, 20e-9]), "best_beam": np.zeros(8, int)}
     coarse = {k: v.copy() for k, v in fine.items()}
     coarse["path_gain_db"][1] = -101.01        # gain moved by more than 1 dB
@@ -792,7 +792,6 @@ def test_settled_cells_follow_the_sampling_checks_tolerances():
     coarse["rms_delay_spread_s"][4] = 80.5e-9  # 19.5 ns
     coarse["best_beam"][5] = 3                 # another best beam
     coarse["rms_delay_spread_s"][7] = 29e-9    # 9 ns: within the 10 ns floor
-    coarse["has_path"] = coarse["has_path"].copy()
     settled = cs.settled_cells(coarse, fine)
     assert settled.tolist() == [True, False, True, False, True, False, True, True]
     coarse["has_path"][0] = False             # one trace does not reach it

@@ -534,7 +534,7 @@ class DiffractionSampler:
             return
         take = lambda x: dr.gather(type(x), x, idx)  # noqa: E731
         # the kept samples' wedges from the table, not from ``wedges``: a gather evaluates a lazy
-        # source first, one kernel per field over the whole batch (17 of them, 4 % of the canyon's call)
+        # source first, one kernel per field over the whole batch (17 of them, 4 % of the canyon's kernel time)
         wq = dr.gather(type(wedges), self._wedge_table()[0], take(lattice["pair"]))
         qq, kki, kko, sp, sr, o, dd = take(q), take(ki), take(ko), take(s_prime), take(s_ref), take(ray.o), take(dep)
         # departure directions on a 2**-7 grid of direction cosines (< 0.45 deg): the deposits of

@@ -33,6 +33,21 @@ DELAY_SPREAD_TOLERANCE_S = 10e-9
 DELAY_SPREAD_TOLERANCE_REL = 0.2
 
 
+def within_tolerance(path_gain_db: np.ndarray, rms_delay_spread_s: np.ndarray) -> np.ndarray:
+    """Whether a link (or cell) traced with fewer and with more samples agrees: ``path_gain_db`` and
+    ``rms_delay_spread_s`` [2, ...] (coarser, finer; gain -inf or NaN, spread NaN where there is
+    none). True where both traces have a gain, it moves by at most :data:`GAIN_TOLERANCE_DB`, and
+    the spread by at most max(:data:`DELAY_SPREAD_TOLERANCE_S`, :data:`DELAY_SPREAD_TOLERANCE_REL` of
+    the finer one's) where both hold one. The sampling checks' rule, and the benchmark's
+    (``benchmarks.ckm_solver.settled_cells``)."""
+    g, ds = np.asarray(path_gain_db), np.asarray(rms_delay_spread_s)
+    ds_tol = np.maximum(DELAY_SPREAD_TOLERANCE_S, DELAY_SPREAD_TOLERANCE_REL * np.nan_to_num(ds[1]))
+    with np.errstate(invalid="ignore"):
+        gain_ok = np.isfinite(g[0]) & np.isfinite(g[1]) & (np.abs(g[1] - g[0]) <= GAIN_TOLERANCE_DB)
+        ds_ok = ~(np.isfinite(ds[0]) & np.isfinite(ds[1])) | (np.abs(ds[1] - ds[0]) <= ds_tol)
+    return gain_ok & ds_ok
+
+
 @dataclass
 class SamplingConvergence:
     """Path gain and RMS delay spread of links ``[num_tx, num_rx]`` at two sample counts."""
@@ -48,7 +63,7 @@ class SamplingConvergence:
         g, ds = self.path_gain_db, self.rms_delay_spread_s
         s0, s1 = f"{self.samples_per_src:,}", f"{self.check_samples_per_src:,}"
         problems = []
-        ds_tol = np.maximum(DELAY_SPREAD_TOLERANCE_S, DELAY_SPREAD_TOLERANCE_REL * np.nan_to_num(ds[1]))
+        agree = within_tolerance(g, ds)
         with np.errstate(invalid="ignore"):
             dg = np.where(np.isfinite(g[0]) & np.isfinite(g[1]), g[1] - g[0], np.nan)
             dds = ds[1] - ds[0]
@@ -58,7 +73,7 @@ class SamplingConvergence:
                 problems.append(f"{where}: no path at {s0} samples, {g[1, b, r]:.1f} dB at {s1}")
             elif not np.isfinite(g[1, b, r]):
                 problems.append(f"{where}: {g[0, b, r]:.1f} dB at {s0} samples, no path at {s1}")
-            elif abs(dg[b, r]) > GAIN_TOLERANCE_DB or abs(dds[b, r]) > ds_tol[b, r]:
+            elif not agree[b, r]:
                 problems.append(f"{where}: path gain {g[0, b, r]:.1f} -> {g[1, b, r]:.1f} dB, RMS delay "
                                 f"spread {1e9 * ds[0, b, r]:.1f} -> {1e9 * ds[1, b, r]:.1f} ns from {s0} to "
                                 f"{s1} samples")
