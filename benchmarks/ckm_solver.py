@@ -776,7 +776,10 @@ def against_converged_reference(radio, tx, ori, centres_xyz: np.ndarray, fast_at
     run at ``diffuse_samples`` (:func:`merged_paths`, :data:`CONVERGED_DIFFUSE_SAMPLES`), traced
     :data:`CONVERGED_CELLS_PER_TRACE` cells at a time. With ``settle_factor`` > 1 the centres are
     traced again with 1 / ``settle_factor`` of both runs' samples, and the errors at the centres are
-    also given on the cells where the two agree (:func:`settled_cells`)."""
+    also given on the cells where the two agree (:func:`settled_cells`); at 3 x 3 points per cell
+    also the errors against the points pooled, on the cells whose pooled layers agree
+    (``settled["cell_points"]``): a centre's delay spread can differ from its cell's by more than the
+    issue's 5 ns (Munich, docs/ckm-one-pass.md "Session 41")."""
     if points_per_cell not in (1, 9):
         raise ValueError(f"points_per_cell must be 1 or 9, got {points_per_cell}")
     diffuse = bool(radio.solver_config.diffuse_reflection)
@@ -801,8 +804,9 @@ def against_converged_reference(radio, tx, ori, centres_xyz: np.ndarray, fast_at
                covered_of_reached_pct=_covered_of_reached_pct(fast_at["has_path"], ref["has_path"]),
                errors_vs_centre=_compare(fast_at, ref))
     if settle_factor > 1:
-        coarse, _, s_coarse, _ = _layers_in_parts(tx, centres_xyz, codebook, 1, per_trace,
-                                                  tracer(samples // settle_factor, diffuse_samples // settle_factor))
+        coarse, coarse_pooled, s_coarse, _ = _layers_in_parts(
+            tx, centres_xyz, codebook, 1 if points_per_cell == 1 else 3, per_trace,
+            tracer(samples // settle_factor, diffuse_samples // settle_factor))
         settled = settled_cells(coarse, ref)
         out["settled"] = {"samples_per_src": int(samples // settle_factor),
                           "diffuse_samples_per_src": int(diffuse_samples // settle_factor) if diffuse else None,
@@ -811,6 +815,13 @@ def against_converged_reference(radio, tx, ori, centres_xyz: np.ndarray, fast_at
                           "settled_cell_index": np.flatnonzero(settled).tolist(),
                           "errors_vs_centre": _compare(_subset(fast_at, settled), _subset(ref, settled)),
                           "errors_vs_centre_unsettled": _compare(_subset(fast_at, ~settled), _subset(ref, ~settled))}
+        if points_per_cell == 9:  # the cell's layers settle on their own: its nine points pooled, both traces
+            at = settled_cells(coarse_pooled, pooled)
+            out["settled"]["cell_points"] = {
+                "cells": int(at.sum()), "cells_reached": int(pooled["has_path"].sum()),
+                "settled_cell_index": np.flatnonzero(at).tolist(),
+                "errors": _compare(_subset(fast_at, at), _subset(pooled, at)),
+                "errors_unsettled": _compare(_subset(fast_at, ~at), _subset(pooled, ~at))}
     if points_per_cell == 9:  # the cell: reached where any of its nine points is
         out.update(reached_by_pathsolver_cell_points=int(pooled["has_path"].sum()),
                    covered_of_reached_pct_cell_points=_covered_of_reached_pct(fast_at["has_path"], pooled["has_path"]),
@@ -1524,6 +1535,18 @@ def _converged_reference_lines(results: dict) -> list[str]:
             lines.append(f"| {n} | {st} | {c['settled']['cells']} / {c['settled']['cells_reached']} | "
                          f"{settled_row(c, c['settled']['errors_vs_centre'])} | {_pp(u['path_gain_db'])} | "
                          f"{_f(u['best_beam_agreement_pct'])} | {_f(u.get('best_beam_top3_agreement_pct'))} |")
+        at_points = [(n, st, c["settled"]["cell_points"]) for n, st, c in settled if c["settled"].get("cell_points")]
+        if at_points:
+            lines += ["", "The same against the 3 x 3 points of each cell pooled (the cell, as the issue compares it), "
+                      "on the cells whose pooled layers have settled by the same rule (both traces at 3 x 3 points):", "",
+                      "| scene | set | settled / reached | settled: gain dB p50 / p95 | ToA ns p50 | DS ns p50 / p95 | "
+                      "spreads deg p50 | best beam % | top-3 % | not settled: gain dB p50 / p95 | best beam % | top-3 % |",
+                      "|---" * 12 + "|"]
+            for n, st, c in at_points:
+                u = c["errors_unsettled"]
+                lines.append(f"| {n} | {st} | {c['cells']} / {c['cells_reached']} | {settled_row(c, c['errors'])} | "
+                             f"{_pp(u['path_gain_db'])} | {_f(u['best_beam_agreement_pct'])} | "
+                             f"{_f(u.get('best_beam_top3_agreement_pct'))} |")
     pooled = [(n, st, r["against_converged_reference"]) for n, st, r in _each_set(results)
               if (r.get("against_converged_reference") or {}).get("errors_vs_cell_points")]
     if pooled:

@@ -319,7 +319,12 @@ def _set_result(mechanisms: str, seed: int = 0) -> dict:
             "points_per_cell": 9, "reached_by_pathsolver": int(ref["has_path"].sum()),
             "covered_of_reached_pct": cs._covered_of_reached_pct(fast["has_path"], ref["has_path"]),
             "errors_vs_centre": cs._compare(fast, ref), "errors_vs_cell_points": cs._compare(ref, ref),
-            "reached_by_pathsolver_cell_points": 8, "covered_of_reached_pct_cell_points": 75.0}
+            "reached_by_pathsolver_cell_points": 8, "covered_of_reached_pct_cell_points": 75.0,
+            "settled": {"samples_per_src": 10**7, "diffuse_samples_per_src": None, "s": 1.0, "cells": 6,
+                        "cells_reached": 8, "settled_cell_index": [0, 1, 2, 3, 4, 5],
+                        "errors_vs_centre": cs._compare(ref, ref), "errors_vs_centre_unsettled": cs._compare(fast, ref),
+                        "cell_points": {"cells": 5, "cells_reached": 8, "settled_cell_index": [0, 1, 2, 3, 4],
+                                        "errors": cs._compare(ref, ref), "errors_unsettled": cs._compare(fast, ref)}}}
     if mechanisms in cs.EQUAL_ERROR_SETS:  # the one-pass reaches RadioMapSolver's 1e7-ray error at 1e6 rays
         ref_map = np.array([-90.0, -100.0, -80.0])
         run = {"one_pass": lambda n: (ref_map + 0.1 * (n < 10**6), n * 1e-6),
@@ -396,6 +401,9 @@ def test_ckm_solver_targets_and_report_cover_every_mechanism_set(tmp_path):
     # own coverage (any of nine points reached), not the centres'
     assert "The same against its 3 x 3 points per cell pooled" in md
     assert "| canyon | diffraction | 8 | 9 | 5.0 | 8 | 75 | 0 / 0 | " in md
+    # split by whether the reference has settled: at the centres, and at the cells' 3 x 3 points
+    assert "The same at the centres, split by whether" in md and "| canyon | diffraction | 6 / 8 | 0 / 0 | " in md
+    assert "The same against the 3 x 3 points of each cell pooled" in md and "| canyon | diffraction | 5 / 8 | 0 / 0 | " in md
     # judged again against the converged reference: every error 0, the pooled coverage (75 %) read
     again = sets["diffraction"]["targets_met_vs_converged_reference"]
     assert again["path_gain_p95_vs_cell_points_le_3_db"] is True and again["best_beam_top3_agreement_ge_99_pct"] is True
@@ -767,6 +775,16 @@ def test_converged_reference_with_diffuse_reflection_merges_a_deterministic_diff
     assert st["settled_cell_index"] == [0, 1, 2, 3, 4]
     assert st["errors_vs_centre"]["path_gain_db"] == out["errors_vs_centre"]["path_gain_db"]
     assert st["errors_vs_centre_unsettled"]["cells"] == 0 and st["errors_vs_centre_unsettled"]["best_beam_agreement_pct"] is None
+    # at 3 x 3 points per cell: both traces at every point, the pooled layers settle on their own
+    calls.clear()
+    out = cs.against_converged_reference(radio, np.zeros(3), np.zeros(3), centres, fast, codebook,
+                                         samples=1000, diffuse_samples=100, points_per_cell=9)
+    assert [c[:3] for c in calls] == [(1000, False, False), (100, True, True)] * 3 + [(100, False, False), (10, True, True)] * 3
+    assert [len(c[3]) for c in calls[::2]] == [18, 18, 9] * 2
+    at = out["settled"]["cell_points"]
+    assert (at["cells"], at["cells_reached"], at["settled_cell_index"]) == (5, 5, [0, 1, 2, 3, 4])
+    assert at["errors"]["path_gain_db"] == out["errors_vs_cell_points"]["path_gain_db"]
+    assert at["errors_unsettled"]["cells"] == 0
     # diffuse reflection off (the diffraction set): one default-generator run of every cell
     calls.clear()
     radio.solver_config = Config(10, False)
