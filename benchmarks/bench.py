@@ -103,6 +103,9 @@ def _sum_ckm_solver(r):
             if st.get("targets_met_vs_converged_reference"):
                 lines.append(f"{name}, {ms}: targets, accuracy against the converged 3 x 3 reference: "
                              + judgement(st["targets_met_vs_converged_reference"]))
+            if st.get("targets_met_where_converged_reference_settled"):
+                lines.append(f"{name}, {ms}: targets, the same where it has settled: "
+                             + judgement(st["targets_met_where_converged_reference_settled"]))
     return lines
 
 

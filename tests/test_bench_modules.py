@@ -324,7 +324,7 @@ def _set_result(mechanisms: str, seed: int = 0) -> dict:
                         "cells_reached": 8, "settled_cell_index": [0, 1, 2, 3, 4, 5],
                         "errors_vs_centre": cs._compare(ref, ref), "errors_vs_centre_unsettled": cs._compare(fast, ref),
                         "cell_points": {"cells": 5, "cells_reached": 8, "settled_cell_index": [0, 1, 2, 3, 4],
-                                        "errors": cs._compare(ref, ref), "errors_unsettled": cs._compare(fast, ref)}}}
+                                        "errors": cs._compare(fast, ref), "errors_unsettled": cs._compare(ref, ref)}}}
     if mechanisms in cs.EQUAL_ERROR_SETS:  # the one-pass reaches RadioMapSolver's 1e7-ray error at 1e6 rays
         ref_map = np.array([-90.0, -100.0, -80.0])
         run = {"one_pass": lambda n: (ref_map + 0.1 * (n < 10**6), n * 1e-6),
@@ -349,6 +349,7 @@ def _set_result(mechanisms: str, seed: int = 0) -> dict:
     r["targets_met"] = cs.targets(r, mechanisms)
     if mechanisms in cs.CONVERGED_REFERENCE_SETS:
         r["targets_met_vs_converged_reference"] = cs.targets_vs_converged(r, mechanisms)
+        r["targets_met_where_converged_reference_settled"] = cs.targets_vs_converged(r, mechanisms, settled=True)
     return r
 
 
@@ -403,13 +404,21 @@ def test_ckm_solver_targets_and_report_cover_every_mechanism_set(tmp_path):
     assert "| canyon | diffraction | 8 | 9 | 5.0 | 8 | 75 | 0 / 0 | " in md
     # split by whether the reference has settled: at the centres, and at the cells' 3 x 3 points
     assert "The same at the centres, split by whether" in md and "| canyon | diffraction | 6 / 8 | 0 / 0 | " in md
-    assert "The same against the 3 x 3 points of each cell pooled" in md and "| canyon | diffraction | 5 / 8 | 0 / 0 | " in md
+    at = conv["settled"]["cell_points"]
+    assert "The same against the 3 x 3 points of each cell pooled" in md
+    assert f"| canyon | diffraction | 5 / 8 | {cs._pp(at['errors']['path_gain_db'])} | " in md
     # judged again against the converged reference: every error 0, the pooled coverage (75 %) read
     again = sets["diffraction"]["targets_met_vs_converged_reference"]
     assert again["path_gain_p95_vs_cell_points_le_3_db"] is True and again["best_beam_top3_agreement_ge_99_pct"] is True
     assert again["coverage_of_pathsolver_cells_ge_99_pct"] is False
     assert again["speedup_vs_per_cell_loop_ge_100"] == sets["diffraction"]["targets_met"]["speedup_vs_per_cell_loop_ge_100"]
     assert "The same, the accuracy judged against the converged reference" in md
+    # where it has settled: the settled cells' errors (here the one-pass's random spreads, 0 .. 20
+    # deg, where every cell's are 0), ToA at the settled centres (0), the coverage of every cell it reaches
+    where = sets["diffraction"]["targets_met_where_converged_reference_settled"]
+    assert where["angular_spreads_p50_vs_cell_points_le_5_deg"] is False and again["angular_spreads_p50_vs_cell_points_le_5_deg"] is True
+    assert where["toa_p50_vs_centre_le_1_ns"] is True and where["coverage_of_pathsolver_cells_ge_99_pct"] is False
+    assert "The same on the cells where that reference has settled" in md
     # the map against the converged one: both cover 2 cells, |diff| 0.5 and 0 dB; points 1 cell, 4 / 0 dB
     assert "| canyon | diffraction | 16 | 9.0 | 3 / 3 / 2 | 0.25 / 0.475 | 2 | 2 / 3.8 |" in md
     # the second pass's front: per factor, the cell it fills (1 dB off) and the whole map (0.5, 0, 1 dB)
@@ -1106,3 +1115,18 @@ def test_radio_map_comparison_times_both_solvers_in_turn_and_keeps_each_ones_fas
     # --quick: first calls only, as before
     out, calls = run({"one_pass": iter([9.0]), "rms": iter([6.0, 3.0])}, 0, 0)
     assert calls == ["one_pass", "rms", "rms"] and out["one_pass_over_radio_map_time"] == pytest.approx(1.5)
+
+
+def test_bench_summary_gives_the_ckm_judgements_against_each_reference():
+    """``simart bench``'s ckm_solver lines: the targets against the main reference, against the
+    converged one at 3 x 3 points, and where that one has settled, each as ckm_solver judges them."""
+    from benchmarks import bench, ckm_solver as cs
+
+    r = _set_result("all", 0)
+    lines = bench._sum_ckm_solver({"scenes": {"canyon": {"sets": {"all": r}}}})
+    assert f"canyon, all: targets {cs.judgement(r['targets_met'])}" in lines
+    assert ("canyon, all: targets, accuracy against the converged 3 x 3 reference: "
+            + cs.judgement(r["targets_met_vs_converged_reference"])) in lines
+    assert ("canyon, all: targets, the same where it has settled: "
+            + cs.judgement(r["targets_met_where_converged_reference_settled"])) in lines
+    assert r["targets_met_where_converged_reference_settled"] != r["targets_met_vs_converged_reference"]
