@@ -45,9 +45,10 @@ Per scene and set:
   the centres of a random subset of the compared cells at :data:`CONVERGED_REFERENCE_SAMPLES`
   (:func:`against_converged_reference`: the errors against a reference whose reflection-diffraction
   chains have converged further; with diffuse reflection its diffuse paths from a deterministic run
-  at :data:`CONVERGED_DIFFUSE_SAMPLES`; ``--converged-points 9``: at 3 x 3 points per cell, 9x the time;
-  the errors also split by whether that reference has settled in the cell, traced again with a tenth
-  of its samples, :func:`settled_cells`);
+  at :data:`CONVERGED_DIFFUSE_SAMPLES`; ``--converged-points 9``: at 3 x 3 points per cell, about
+  4x the time, Munich 143 s a cell against 36 s at the centre; the errors also split by whether
+  that reference has settled in the cell, traced again with a tenth of its samples,
+  :func:`settled_cells`, at the points too with ``--converged-points 9``);
 - **speed**: the one-pass time for the whole grid (warm: kernels compiled), one PathSolver call per
   cell (timed on random outdoor cells, at most :data:`LOOP_CELLS` calls or :data:`LOOP_BUDGET_S`
   seconds, and extrapolated to the grid's cells with outdoor area, which the reference mode would
@@ -770,7 +771,7 @@ def against_converged_reference(radio, tx, ori, centres_xyz: np.ndarray, fast_at
                                 settle_factor: int = CONVERGED_SETTLE_FACTOR) -> dict:
     """PathSolver at ``samples`` per source (Sionna's default candidate generator) at the cell
     centres ``centres_xyz`` [cells, 3] (``points_per_cell`` 9: at 3 x 3 points per cell, like the main
-    reference, 9x the time): the one-pass layers ``fast_at`` of those cells against it
+    reference, about 4x the time): the one-pass layers ``fast_at`` of those cells against it
     (:func:`_compare`: at the centres, and against the 3 x 3 points pooled), the cells each
     reaches, and the time. With diffuse reflection on, the diffuse paths come from a deterministic
     run at ``diffuse_samples`` (:func:`merged_paths`, :data:`CONVERGED_DIFFUSE_SAMPLES`), traced
@@ -821,6 +822,7 @@ def against_converged_reference(radio, tx, ori, centres_xyz: np.ndarray, fast_at
                 "cells": int(at.sum()), "cells_reached": int(pooled["has_path"].sum()),
                 "settled_cell_index": np.flatnonzero(at).tolist(),
                 "errors": _compare(_subset(fast_at, at), _subset(pooled, at)),
+                "errors_vs_centre": _compare(_subset(fast_at, at), _subset(ref, at)),  # ToA: the layer's definition
                 "errors_unsettled": _compare(_subset(fast_at, ~at), _subset(pooled, ~at))}
     if points_per_cell == 9:  # the cell: reached where any of its nine points is
         out.update(reached_by_pathsolver_cell_points=int(pooled["has_path"].sum()),
@@ -1296,12 +1298,12 @@ def targets_vs_converged(r: dict, mechanisms: str, settled: bool = False) -> dic
     (``--converged-points 9``: 1e8 samples, fewer cells) instead of the main one:
     coverage and the errors against the pooled points, ToA at the centres; speed and
     RadioMapSolver as in :func:`targets`. ``settled``: the errors on the cells where that reference
-    has settled (:func:`settled_cells`; at the points pooled, ToA at the centres that have); the
+    has settled (:func:`settled_cells`; at the points pooled, ToA at those cells' centres); the
     coverage of every cell it reaches."""
     c = r["against_converged_reference"]
     e3, ec = c["errors_vs_cell_points"], c["errors_vs_centre"]
     if settled:
-        e3, ec = c["settled"]["cell_points"]["errors"], c["settled"]["errors_vs_centre"]
+        e3, ec = c["settled"]["cell_points"]["errors"], c["settled"]["cell_points"]["errors_vs_centre"]
     return targets({**r, "coverage": {"covered_of_reached_pct": c["covered_of_reached_pct_cell_points"]},
                     "errors_vs_cell_points": e3, "errors_vs_centre": ec}, mechanisms)
 
@@ -1548,14 +1550,16 @@ def _converged_reference_lines(results: dict) -> list[str]:
                          f"{_f(u['best_beam_agreement_pct'])} | {_f(u.get('best_beam_top3_agreement_pct'))} |")
         at_points = [(n, st, c["settled"]["cell_points"]) for n, st, c in settled if c["settled"].get("cell_points")]
         if at_points:
-            lines += ["", "The same against the 3 x 3 points of each cell pooled (the cell, as the issue compares it), "
-                      "on the cells whose pooled layers have settled by the same rule (both traces at 3 x 3 points):", "",
+            lines += ["", "The same against the 3 x 3 points of each cell pooled (the cell, as the issue compares it; ToA at "
+                      "the centre), on the cells whose pooled layers have settled by the same rule (both traces at 3 x 3 "
+                      "points):", "",
                       "| scene | set | settled / reached | settled: gain dB p50 / p95 | ToA ns p50 | DS ns p50 / p95 | "
                       "spreads deg p50 | best beam % | top-3 % | not settled: gain dB p50 / p95 | best beam % | top-3 % |",
                       "|---" * 12 + "|"]
             for n, st, c in at_points:
                 u = c["errors_unsettled"]
-                lines.append(f"| {n} | {st} | {c['cells']} / {c['cells_reached']} | {settled_row(c, c['errors'])} | "
+                e = {**c["errors"], "toa_ns": c["errors_vs_centre"]["toa_ns"]}  # ToA at the centre, as above
+                lines.append(f"| {n} | {st} | {c['cells']} / {c['cells_reached']} | {settled_row(c, e)} | "
                              f"{_pp(u['path_gain_db'])} | {_f(u['best_beam_agreement_pct'])} | "
                              f"{_f(u.get('best_beam_top3_agreement_pct'))} |")
     pooled = [(n, st, r["against_converged_reference"]) for n, st, r in _each_set(results)

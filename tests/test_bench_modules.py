@@ -324,7 +324,8 @@ def _set_result(mechanisms: str, seed: int = 0) -> dict:
                         "cells_reached": 8, "settled_cell_index": [0, 1, 2, 3, 4, 5],
                         "errors_vs_centre": cs._compare(ref, ref), "errors_vs_centre_unsettled": cs._compare(fast, ref),
                         "cell_points": {"cells": 5, "cells_reached": 8, "settled_cell_index": [0, 1, 2, 3, 4],
-                                        "errors": cs._compare(fast, ref), "errors_unsettled": cs._compare(ref, ref)}}}
+                                        "errors": cs._compare(fast, ref), "errors_vs_centre": cs._compare(ref, ref),
+                                        "errors_unsettled": cs._compare(ref, ref)}}}
     if mechanisms in cs.EQUAL_ERROR_SETS:  # the one-pass reaches RadioMapSolver's 1e7-ray error at 1e6 rays
         ref_map = np.array([-90.0, -100.0, -80.0])
         run = {"one_pass": lambda n: (ref_map + 0.1 * (n < 10**6), n * 1e-6),
@@ -793,6 +794,7 @@ def test_converged_reference_with_diffuse_reflection_merges_a_deterministic_diff
     at = out["settled"]["cell_points"]
     assert (at["cells"], at["cells_reached"], at["settled_cell_index"]) == (5, 5, [0, 1, 2, 3, 4])
     assert at["errors"]["path_gain_db"] == out["errors_vs_cell_points"]["path_gain_db"]
+    assert at["errors_vs_centre"]["toa_ns"] == out["errors_vs_centre"]["toa_ns"]
     assert at["errors_unsettled"]["cells"] == 0
     # diffuse reflection off (the diffraction set): one default-generator run of every cell
     calls.clear()
