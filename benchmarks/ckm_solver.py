@@ -796,8 +796,8 @@ def against_converged_reference(radio, tx, ori, centres_xyz: np.ndarray, fast_at
         return trace
 
     per_trace = CONVERGED_CELLS_PER_TRACE if diffuse else len(centres_xyz)
-    ref, pooled, s, _ = _layers_in_parts(tx, centres_xyz, codebook, 1 if points_per_cell == 1 else 3,
-                                         per_trace, tracer(samples, diffuse_samples))
+    per_side = 1 if points_per_cell == 1 else 3
+    ref, pooled, s, _ = _layers_in_parts(tx, centres_xyz, codebook, per_side, per_trace, tracer(samples, diffuse_samples))
     out = {"samples_per_src": int(samples), "generator": "default (non-deterministic)", "cells": int(len(centres_xyz)),
            "points_per_cell": points_per_cell, "s": round(s, 1),
            "diffuse_samples_per_src": int(diffuse_samples) if diffuse else None}
@@ -806,8 +806,7 @@ def against_converged_reference(radio, tx, ori, centres_xyz: np.ndarray, fast_at
                errors_vs_centre=_compare(fast_at, ref))
     if settle_factor > 1:
         coarse, coarse_pooled, s_coarse, _ = _layers_in_parts(
-            tx, centres_xyz, codebook, 1 if points_per_cell == 1 else 3, per_trace,
-            tracer(samples // settle_factor, diffuse_samples // settle_factor))
+            tx, centres_xyz, codebook, per_side, per_trace, tracer(samples // settle_factor, diffuse_samples // settle_factor))
         settled = settled_cells(coarse, ref)
         out["settled"] = {"samples_per_src": int(samples // settle_factor),
                           "diffuse_samples_per_src": int(diffuse_samples // settle_factor) if diffuse else None,
@@ -1528,40 +1527,38 @@ def _converged_reference_lines(results: dict) -> list[str]:
         "shadow edge crosses the cell: these errors bound the one-pass's from above). The main reference's figures "
         "for the same set are in the tables above.", columns,
         lambda c: row(c, c["errors_vs_centre"], c["reached_by_pathsolver"], c["covered_of_reached_pct"]))
-    settled = [(n, st, r["against_converged_reference"]) for n, st, r in _each_set(results)
+    settled = [(n, st, r["against_converged_reference"]["settled"]) for n, st, r in _each_set(results)
                if (r.get("against_converged_reference") or {}).get("settled")]
-    if settled:
-        def settled_row(c, e):
-            return (f"{_pp(e['path_gain_db'])} | {_f(e['toa_ns']['p50'])} | {_pp(e['rms_delay_spread_ns'])} | "
-                    f"{_f(largest_spread_p50(e))} | {_f(e['best_beam_agreement_pct'])} | "
-                    f"{_f(e.get('best_beam_top3_agreement_pct'))}")
 
-        lines += ["", "The same at the centres, split by whether the converged reference has settled there: traced "
-                  f"again with 1/{CONVERGED_SETTLE_FACTOR} of its samples, both reach the cell, its gain moves by "
-                  "at most 1 dB, its delay spread by at most max(10 ns, 20 %) and its best beam stays "
-                  "(`settled_cells`). Elsewhere the reference is still moving with its samples:", "",
-                  "| scene | set | settled / reached | settled: gain dB p50 / p95 | ToA ns p50 | DS ns p50 / p95 | "
-                  "spreads deg p50 | best beam % | top-3 % | not settled: gain dB p50 / p95 | best beam % | top-3 % |",
-                  "|---" * 12 + "|"]
-        for n, st, c in settled:
-            u = c["settled"]["errors_vs_centre_unsettled"]
-            lines.append(f"| {n} | {st} | {c['settled']['cells']} / {c['settled']['cells_reached']} | "
-                         f"{settled_row(c, c['settled']['errors_vs_centre'])} | {_pp(u['path_gain_db'])} | "
-                         f"{_f(u['best_beam_agreement_pct'])} | {_f(u.get('best_beam_top3_agreement_pct'))} |")
-        at_points = [(n, st, c["settled"]["cell_points"]) for n, st, c in settled if c["settled"].get("cell_points")]
-        if at_points:
-            lines += ["", "The same against the 3 x 3 points of each cell pooled (the cell, as the issue compares it; ToA at "
-                      "the centre), on the cells whose pooled layers have settled by the same rule (both traces at 3 x 3 "
-                      "points):", "",
-                      "| scene | set | settled / reached | settled: gain dB p50 / p95 | ToA ns p50 | DS ns p50 / p95 | "
-                      "spreads deg p50 | best beam % | top-3 % | not settled: gain dB p50 / p95 | best beam % | top-3 % |",
-                      "|---" * 12 + "|"]
-            for n, st, c in at_points:
-                u = c["errors_unsettled"]
-                e = {**c["errors"], "toa_ns": c["errors_vs_centre"]["toa_ns"]}  # ToA at the centre, as above
-                lines.append(f"| {n} | {st} | {c['cells']} / {c['cells_reached']} | {settled_row(c, e)} | "
-                             f"{_pp(u['path_gain_db'])} | {_f(u['best_beam_agreement_pct'])} | "
-                             f"{_f(u.get('best_beam_top3_agreement_pct'))} |")
+    def settled_table(intro: str, rows) -> list[str]:  # rows: (scene, set, cells, reached, errors, unsettled)
+        out = ["", intro, "",
+               "| scene | set | settled / reached | settled: gain dB p50 / p95 | ToA ns p50 | DS ns p50 / p95 | "
+               "spreads deg p50 | best beam % | top-3 % | not settled: gain dB p50 / p95 | best beam % | top-3 % |",
+               "|---" * 12 + "|"]
+        for n, st, cells, reached, e, u in rows:
+            out.append(f"| {n} | {st} | {cells} / {reached} | {_pp(e['path_gain_db'])} | {_f(e['toa_ns']['p50'])} | "
+                       f"{_pp(e['rms_delay_spread_ns'])} | {_f(largest_spread_p50(e))} | "
+                       f"{_f(e['best_beam_agreement_pct'])} | {_f(e.get('best_beam_top3_agreement_pct'))} | "
+                       f"{_pp(u['path_gain_db'])} | {_f(u['best_beam_agreement_pct'])} | "
+                       f"{_f(u.get('best_beam_top3_agreement_pct'))} |")
+        return out
+
+    if settled:
+        lines += settled_table(
+            "The same at the centres, split by whether the converged reference has settled there: traced "
+            f"again with 1/{CONVERGED_SETTLE_FACTOR} of its samples, both reach the cell, its gain moves by "
+            "at most 1 dB, its delay spread by at most max(10 ns, 20 %) and its best beam stays "
+            "(`settled_cells`). Elsewhere the reference is still moving with its samples:",
+            [(n, st, c["cells"], c["cells_reached"], c["errors_vs_centre"], c["errors_vs_centre_unsettled"])
+             for n, st, c in settled])
+    at_points = [(n, st, c["cell_points"]) for n, st, c in settled if c.get("cell_points")]
+    if at_points:
+        lines += settled_table(
+            "The same against the 3 x 3 points of each cell pooled (the cell, as the issue compares it; ToA at "
+            "the centre), on the cells whose pooled layers have settled by the same rule (both traces at 3 x 3 "
+            "points):",
+            [(n, st, c["cells"], c["cells_reached"], {**c["errors"], "toa_ns": c["errors_vs_centre"]["toa_ns"]},
+              c["errors_unsettled"]) for n, st, c in at_points])
     pooled = [(n, st, r["against_converged_reference"]) for n, st, r in _each_set(results)
               if (r.get("against_converged_reference") or {}).get("errors_vs_cell_points")]
     if pooled:
