@@ -235,12 +235,18 @@ CONVERGED_DIFFUSE_SAMPLES = 10**7
 CONVERGED_CELLS_PER_TRACE = 2
 # Which of those cells the converged reference has itself settled in: the same cells traced again
 # with 1 / CONVERGED_SETTLE_FACTOR of its samples (both runs'); a cell has settled where both traces
-# reach it, its path gain and RMS delay spread move within the sampling check's tolerances
-# (radio.convergence: 1 dB; max(10 ns, 20 % of the finer trace's)) and its best beam stays. The
-# errors are also given on those cells alone: elsewhere (Munich's cells behind the station, 17-23 dB
-# apart between 1e6 and 1e7 diffuse samples, session 34) a difference says how far PathSolver is from
-# its own limit as much as how far the one-pass is from it.
+# reach it, its path gain moves within the sampling check's tolerance (radio.convergence: 1 dB), its
+# RMS delay spread by at most CONVERGED_SETTLE_DELAY_SPREAD_S and its best beam stays. The errors are
+# also given on those cells alone: elsewhere (Munich's cells behind the station, 17-23 dB apart
+# between 1e6 and 1e7 diffuse samples, session 34) a difference says how far PathSolver is from its
+# own limit as much as how far the one-pass is from it.
 CONVERGED_SETTLE_FACTOR = 10
+# The sampling check's spread rule, max(10 ns, 20 %), lets a 100 ns spread move by 20 ns, four times
+# the 5 ns p50 that issue 17 asks of the one-pass: a reference moving that much cannot judge it
+# (Munich's (41.5, 14) m cell moved 25 ns and counted settled, session 41). So the benchmark asks its
+# reference to move by no more than that target: the finer trace, with ten times the samples, is then
+# within about a third of it (its error about 1/sqrt(10) of the coarser one's).
+CONVERGED_SETTLE_DELAY_SPREAD_S = 5e-9
 # The estimator's own convergence, apart from PathSolver's: the one-pass map against the same
 # solver's map with CONVERGED_SAMPLES_FACTOR times the diffraction samples and point deposits (the
 # unbiased estimator; on Munich its 8x map is within 1.7 dB p95 of its 32x one), and the point
@@ -747,17 +753,36 @@ def reference_check(radio, tx, ori, centres_xyz: np.ndarray, fast_at: dict, ref_
             "signed_err_db_this_reference": np.round(fast_g - after, 2).tolist()}
 
 
-def settled_cells(coarse: dict, fine: dict) -> np.ndarray:
+def settled_cells(coarse: dict, fine: dict, delay_spread_tolerance_s: float = CONVERGED_SETTLE_DELAY_SPREAD_S) -> np.ndarray:
     """The cells whose reference layers ``fine`` (more samples) and ``coarse`` agree
-    (:data:`CONVERGED_SETTLE_FACTOR`): both reach the cell, its path gain and RMS delay spread agree
-    by the sampling checks' rule (:func:`simart_pipeline.radio.convergence.within_tolerance`), and
-    the best beam is the same."""
+    (:data:`CONVERGED_SETTLE_FACTOR`): both reach the cell, its path gain agrees by the sampling
+    checks' rule (:func:`simart_pipeline.radio.convergence.within_tolerance`), its RMS delay spread
+    (where both hold one) by at most ``delay_spread_tolerance_s`` as well
+    (:data:`CONVERGED_SETTLE_DELAY_SPREAD_S`), and the best beam is the same."""
     from simart_pipeline.radio.convergence import within_tolerance
 
     both = coarse["has_path"] & fine["has_path"]
     agree = within_tolerance(np.stack([coarse["path_gain_db"], fine["path_gain_db"]]),
                              np.stack([coarse["rms_delay_spread_s"], fine["rms_delay_spread_s"]]))
-    return both & agree & (coarse["best_beam"] == fine["best_beam"])
+    ds = np.stack([coarse["rms_delay_spread_s"], fine["rms_delay_spread_s"]])
+    with np.errstate(invalid="ignore"):
+        ds_ok = ~np.isfinite(ds).all(0) | (np.abs(ds[1] - ds[0]) <= delay_spread_tolerance_s)
+    return both & agree & ds_ok & (coarse["best_beam"] == fine["best_beam"])
+
+
+def per_cell_values(layers: dict) -> dict:
+    """A cell's judged layers as plain lists (JSON; None where it holds none), so that a saved run
+    can be judged again by another rule: path gain dB, ToA and RMS delay spread ns, best beam (-1:
+    no path)."""
+    has = np.asarray(layers["has_path"], bool)
+
+    def col(v, scale=1.0):
+        v = np.where(has, np.asarray(v, float) * scale, np.nan)
+        return [round(float(x), 4) if np.isfinite(x) else None for x in v]
+
+    return {"path_gain_db": col(layers["path_gain_db"]), "toa_ns": col(layers["toa_s"], 1e9),
+            "rms_delay_spread_ns": col(layers["rms_delay_spread_s"], 1e9),
+            "best_beam": np.where(has, layers["best_beam"], -1).astype(int).tolist()}
 
 
 def _subset(layers: dict, sel: np.ndarray) -> dict:
@@ -804,11 +829,20 @@ def against_converged_reference(radio, tx, ori, centres_xyz: np.ndarray, fast_at
     out.update(reached_by_pathsolver=int(ref["has_path"].sum()),
                covered_of_reached_pct=_covered_of_reached_pct(fast_at["has_path"], ref["has_path"]),
                errors_vs_centre=_compare(fast_at, ref))
+    # every cell's values, so that a saved run can be judged again by another rule
+    out["per_cell"] = {"centre_m": np.round(np.asarray(centres_xyz, float), 3).tolist(),
+                       "one_pass": per_cell_values(fast_at), "reference_centre": per_cell_values(ref)}
+    if points_per_cell == 9:
+        out["per_cell"]["reference_cell_points"] = per_cell_values(pooled)
     if settle_factor > 1:
         coarse, coarse_pooled, s_coarse, _ = _layers_in_parts(
             tx, centres_xyz, codebook, per_side, per_trace, tracer(samples // settle_factor, diffuse_samples // settle_factor))
         settled = settled_cells(coarse, ref)
-        out["settled"] = {"samples_per_src": int(samples // settle_factor),
+        out["per_cell"]["settle_trace_centre"] = per_cell_values(coarse)
+        if points_per_cell == 9:
+            out["per_cell"]["settle_trace_cell_points"] = per_cell_values(coarse_pooled)
+        out["settled"] = {"delay_spread_tolerance_ns": round(1e9 * CONVERGED_SETTLE_DELAY_SPREAD_S, 3),
+                          "samples_per_src": int(samples // settle_factor),
                           "diffuse_samples_per_src": int(diffuse_samples // settle_factor) if diffuse else None,
                           "s": round(s_coarse, 1), "cells": int(settled.sum()),
                           "cells_reached": int(ref["has_path"].sum()),
@@ -1547,7 +1581,7 @@ def _converged_reference_lines(results: dict) -> list[str]:
         lines += settled_table(
             "The same at the centres, split by whether the converged reference has settled there: traced "
             f"again with 1/{CONVERGED_SETTLE_FACTOR} of its samples, both reach the cell, its gain moves by "
-            "at most 1 dB, its delay spread by at most max(10 ns, 20 %) and its best beam stays "
+            f"at most 1 dB, its delay spread by at most {1e9 * CONVERGED_SETTLE_DELAY_SPREAD_S:g} ns and its best beam stays "
             "(`settled_cells`). Elsewhere the reference is still moving with its samples:",
             [(n, st, c["cells"], c["cells_reached"], c["errors_vs_centre"], c["errors_vs_centre_unsettled"])
              for n, st, c in settled])
