@@ -247,6 +247,15 @@ CONVERGED_SETTLE_FACTOR = 10
 # reference to move by no more than that target: the finer trace, with ten times the samples, is then
 # within about a third of it (its error about 1/sqrt(10) of the coarser one's).
 CONVERGED_SETTLE_DELAY_SPREAD_S = 5e-9
+# --converged-seeds K (even): the converged reference from K seeded runs instead of one, for cells
+# where one run of 1e8 samples has not settled (Munich's behind the station). PathSolver's specular,
+# refracted and diffracted paths are exact once its samples find their chain (the image method on the
+# chain), so more samples only find more of them: the distinct paths of K runs with other seeds
+# (:func:`union_of_runs`) are what one run of K times the samples finds. Its diffuse paths are a
+# Monte-Carlo estimate: the mean of K seeded runs (:func:`mean_of_runs`). The cell has settled where
+# the first K / 2 runs and the last K / 2, two independent references, agree (:func:`settled_cells`);
+# the reference judged is all K. Cost: K times one run (one run and its settle trace: 1.1 times).
+CONVERGED_SEEDS = 1
 # The estimator's own convergence, apart from PathSolver's: the one-pass map against the same
 # solver's map with CONVERGED_SAMPLES_FACTOR times the diffraction samples and point deposits (the
 # unbiased estimator; on Munich its 8x map is within 1.7 dB p95 of its 32x one), and the point
@@ -611,6 +620,52 @@ def merged_paths(without_diffuse, with_diffuse):
     return type(with_diffuse)(**{f.name: cat(f.name) for f in fields(with_diffuse)})
 
 
+def _concat_paths(parts: list):
+    """One TracedPaths of the same receivers holding every path of ``parts`` (along the path axis;
+    a field that one part lacks, such as the vertices, is dropped)."""
+    def cat(name):
+        vs = [getattr(p, name) for p in parts]
+        if any(v is None for v in vs):
+            return None
+        return np.concatenate(vs, axis=-2 if name == "vertices_m" else -1)
+
+    return type(parts[0])(**{f.name: cat(f.name) for f in fields(parts[0])})
+
+
+def union_of_runs(runs: list):
+    """The distinct paths of PathSolver runs of the same receivers (each traced with vertices):
+    a path that several runs found is kept once (:func:`~simart_pipeline.radio.tracer.drop_duplicate_paths`:
+    the same interaction kinds and every vertex within its tolerance; the runs' object and primitive
+    ids are not kept, and two paths whose every vertex agrees to a millimetre are one). The
+    specular, refracted and diffracted paths of a run are exact once found, so this is what one run
+    of the runs' samples together would find."""
+    from simart_pipeline.radio.tracer import drop_duplicate_paths
+
+    both = _concat_paths(runs)
+    d = {f.name: getattr(both, f.name) for f in fields(both)}
+    if d["vertices_m"] is None:
+        raise ValueError("union_of_runs needs every run's vertices (trace with with_vertices=True)")
+    d["objects"] = d["primitives"] = np.zeros(d["interaction"].shape, np.int64)
+    kept = drop_duplicate_paths(d)
+    return type(both)(**{f.name: kept.get(f.name) for f in fields(both)})
+
+
+def mean_of_runs(runs: list):
+    """Monte-Carlo estimates of the same receivers' paths (PathSolver's diffuse paths of seeded
+    runs) as one: every run's paths, amplitudes scaled by ``1 / sqrt(len(runs))``, so that every
+    power sum is the runs' mean."""
+    scale = np.float32(1.0 / np.sqrt(len(runs)))
+    both = _concat_paths(runs)
+    return type(both)(**{f.name: (getattr(both, f.name) * scale if f.name == "a" else getattr(both, f.name))
+                         for f in fields(both)})
+
+
+def diffuse_paths(paths):
+    """``paths`` with only the valid paths that hold a diffuse reflection valid."""
+    diffuse = (paths.interaction == int(InteractionKind.DIFFUSE)).any(axis=-2) & paths.valid
+    return type(paths)(**{f.name: diffuse if f.name == "valid" else getattr(paths, f.name) for f in fields(paths)})
+
+
 def _slice_paths(paths, rows):
     """The TracedPaths of the receivers ``rows``."""
     return type(paths)(**{f.name: None if getattr(paths, f.name) is None else getattr(paths, f.name)[rows]
@@ -666,23 +721,27 @@ def _layers_in_parts(tx, centres, codebook, per_side: int, cells_per_trace: int,
     """``trace(points)`` (PathSolver paths) at n x n points in each cell (``n = per_side``, odd;
     1: the centres), ``cells_per_trace`` cells at a time, each part reduced to its layers as it
     comes (a part's paths, every antenna pair, can take GBs): (centre layers, pooled n x n layers,
-    trace seconds, ``keep(paths)`` of each part)."""
+    trace seconds, ``keep(paths)`` of each part). A ``trace`` that returns a tuple of paths (several
+    references of the same points) gives a tuple of each layers."""
     tau0 = np.linalg.norm(centres - tx, axis=-1) / SPEED_OF_LIGHT
-    centre_parts, pooled_parts, kept, trace_s = [], [], [], 0.0
+    centre_parts, pooled_parts, kept, trace_s, many = [], [], [], 0.0, False
     for lo in range(0, len(centres), cells_per_trace):
         part = slice(lo, lo + cells_per_trace)
         t = time.perf_counter()
         paths = trace(_cell_points(centres[part], per_side))
         trace_s += time.perf_counter() - t
-        at_centre, pooled = _centre_and_pooled_layers(paths, tau0[part], codebook, per_side * per_side)
-        centre_parts.append(at_centre)
-        pooled_parts.append(pooled)
+        many = isinstance(paths, tuple)
+        layers = [_centre_and_pooled_layers(p, tau0[part], codebook, per_side * per_side)
+                  for p in (paths if many else (paths,))]
+        centre_parts.append([c for c, _ in layers])
+        pooled_parts.append([p for _, p in layers])
         if keep is not None:
             kept.append(keep(paths))
         del paths
 
-    def cat(parts):
-        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    def cat(parts):  # parts: [part][reference] -> one layer dict per reference
+        out = tuple({k: np.concatenate([p[i][k] for p in parts]) for k in parts[0][i]} for i in range(len(parts[0])))
+        return out if many else out[0]
 
     return cat(centre_parts), cat(pooled_parts), trace_s, kept
 
@@ -793,7 +852,7 @@ def _subset(layers: dict, sel: np.ndarray) -> dict:
 def against_converged_reference(radio, tx, ori, centres_xyz: np.ndarray, fast_at: dict, codebook,
                                 samples: int = CONVERGED_REFERENCE_SAMPLES, points_per_cell: int = 1,
                                 diffuse_samples: int = CONVERGED_DIFFUSE_SAMPLES,
-                                settle_factor: int = CONVERGED_SETTLE_FACTOR) -> dict:
+                                settle_factor: int = CONVERGED_SETTLE_FACTOR, seeds: int = CONVERGED_SEEDS) -> dict:
     """PathSolver at ``samples`` per source (Sionna's default candidate generator) at the cell
     centres ``centres_xyz`` [cells, 3] (``points_per_cell`` 9: at 3 x 3 points per cell, like the main
     reference, about 4x the time): the one-pass layers ``fast_at`` of those cells against it
@@ -805,9 +864,17 @@ def against_converged_reference(radio, tx, ori, centres_xyz: np.ndarray, fast_at
     also given on the cells where the two agree (:func:`settled_cells`); at 3 x 3 points per cell
     also the errors against the points pooled, on the cells whose pooled layers agree
     (``settled["cell_points"]``): a centre's delay spread can differ from its cell's by more than the
-    issue's 5 ns (Munich, docs/ckm-one-pass.md "Session 41")."""
+    issue's 5 ns (Munich, docs/ckm-one-pass.md "Session 41").
+
+    ``seeds`` K > 1 (even; :data:`CONVERGED_SEEDS`): K runs of each kind with consecutive seeds from
+    the radio scene's, every one traced: the reference is the union of their non-diffuse paths
+    (:func:`union_of_runs`) and the mean of their diffuse paths (:func:`mean_of_runs`, seeded runs
+    of the default generator instead of the deterministic one), and a cell has settled where the
+    references of the first K / 2 runs and of the last K / 2 agree (``settle_factor`` unused)."""
     if points_per_cell not in (1, 9):
         raise ValueError(f"points_per_cell must be 1 or 9, got {points_per_cell}")
+    if seeds < 1 or (seeds > 1 and seeds % 2):
+        raise ValueError(f"seeds must be 1 or an even count (two halves to settle by), got {seeds}")
     diffuse = bool(radio.solver_config.diffuse_reflection)
 
     def tracer(n, n_diffuse):
@@ -820,12 +887,33 @@ def against_converged_reference(radio, tx, ori, centres_xyz: np.ndarray, fast_at
             return paths
         return trace
 
+    def seeded(points):  # (all K runs, the first K / 2, the last K / 2)
+        seed0, runs, diffuse_runs = int(radio.solver_config.seed), [], []
+        for k in range(seeds):
+            with _samples(radio, samples, diffuse_reflection=False, seed=seed0 + k):
+                runs.append(radio.trace(tx[None], ori[None], points, deterministic=False, with_vertices=True))
+            if diffuse:  # seeds of their own: independent of the runs above
+                with _samples(radio, diffuse_samples, seed=seed0 + seeds + k):
+                    diffuse_runs.append(diffuse_paths(radio.trace(tx[None], ori[None], points, deterministic=False)))
+
+        def reference(sel):
+            found = union_of_runs(runs[sel])
+            return _concat_paths([found, mean_of_runs(diffuse_runs[sel])]) if diffuse else found
+
+        return tuple(reference(sel) for sel in (slice(None), slice(None, seeds // 2), slice(seeds // 2, None)))
+
     per_trace = CONVERGED_CELLS_PER_TRACE if diffuse else len(centres_xyz)
     per_side = 1 if points_per_cell == 1 else 3
-    ref, pooled, s, _ = _layers_in_parts(tx, centres_xyz, codebook, per_side, per_trace, tracer(samples, diffuse_samples))
+    if seeds > 1:
+        (ref, first, last), (pooled, first_pooled, last_pooled), s, _ = _layers_in_parts(
+            tx, centres_xyz, codebook, per_side, per_trace, seeded)
+    else:
+        ref, pooled, s, _ = _layers_in_parts(tx, centres_xyz, codebook, per_side, per_trace,
+                                             tracer(samples, diffuse_samples))
     out = {"samples_per_src": int(samples), "generator": "default (non-deterministic)", "cells": int(len(centres_xyz)),
-           "points_per_cell": points_per_cell, "s": round(s, 1),
-           "diffuse_samples_per_src": int(diffuse_samples) if diffuse else None}
+           "points_per_cell": points_per_cell, "s": round(s, 1), "seeds": int(seeds),
+           "diffuse_samples_per_src": int(diffuse_samples) if diffuse else None,
+           "diffuse_generator": None if not diffuse else ("deterministic" if seeds == 1 else "default (non-deterministic)")}
     out.update(reached_by_pathsolver=int(ref["has_path"].sum()),
                covered_of_reached_pct=_covered_of_reached_pct(fast_at["has_path"], ref["has_path"]),
                errors_vs_centre=_compare(fast_at, ref))
@@ -834,23 +922,39 @@ def against_converged_reference(radio, tx, ori, centres_xyz: np.ndarray, fast_at
                        "one_pass": per_cell_values(fast_at), "reference_centre": per_cell_values(ref)}
     if points_per_cell == 9:
         out["per_cell"]["reference_cell_points"] = per_cell_values(pooled)
-    if settle_factor > 1:
+    settle = None  # (coarse, fine, their pooled layers, what the settled cells' record says of them)
+    if seeds > 1:
+        half = seeds // 2
+        settle = (first, last, first_pooled, last_pooled,
+                  {"by": f"the references of the first {half} and the last {half} of {seeds} seeded runs",
+                   "samples_per_src": int(samples * half),
+                   "diffuse_samples_per_src": int(diffuse_samples * half) if diffuse else None, "s": None})
+        out["per_cell"].update(first_half_centre=per_cell_values(first), last_half_centre=per_cell_values(last))
+        if points_per_cell == 9:
+            out["per_cell"].update(first_half_cell_points=per_cell_values(first_pooled),
+                                   last_half_cell_points=per_cell_values(last_pooled))
+    elif settle_factor > 1:
         coarse, coarse_pooled, s_coarse, _ = _layers_in_parts(
             tx, centres_xyz, codebook, per_side, per_trace, tracer(samples // settle_factor, diffuse_samples // settle_factor))
-        settled = settled_cells(coarse, ref)
+        settle = (coarse, ref, coarse_pooled, pooled,
+                  {"by": f"traced again with 1/{settle_factor} of its samples",
+                   "samples_per_src": int(samples // settle_factor),
+                   "diffuse_samples_per_src": int(diffuse_samples // settle_factor) if diffuse else None,
+                   "s": round(s_coarse, 1)})
         out["per_cell"]["settle_trace_centre"] = per_cell_values(coarse)
         if points_per_cell == 9:
             out["per_cell"]["settle_trace_cell_points"] = per_cell_values(coarse_pooled)
-        out["settled"] = {"delay_spread_tolerance_ns": round(1e9 * CONVERGED_SETTLE_DELAY_SPREAD_S, 3),
-                          "samples_per_src": int(samples // settle_factor),
-                          "diffuse_samples_per_src": int(diffuse_samples // settle_factor) if diffuse else None,
-                          "s": round(s_coarse, 1), "cells": int(settled.sum()),
+    if settle is not None:
+        coarse, fine, coarse_pooled, fine_pooled, record = settle
+        settled = settled_cells(coarse, fine)
+        out["settled"] = {"delay_spread_tolerance_ns": round(1e9 * CONVERGED_SETTLE_DELAY_SPREAD_S, 3), **record,
+                          "cells": int(settled.sum()),
                           "cells_reached": int(ref["has_path"].sum()),
                           "settled_cell_index": np.flatnonzero(settled).tolist(),
                           "errors_vs_centre": _compare(_subset(fast_at, settled), _subset(ref, settled)),
                           "errors_vs_centre_unsettled": _compare(_subset(fast_at, ~settled), _subset(ref, ~settled))}
         if points_per_cell == 9:  # the cell's layers settle on their own: its nine points pooled, both traces
-            at = settled_cells(coarse_pooled, pooled)
+            at = settled_cells(coarse_pooled, fine_pooled)
             out["settled"]["cell_points"] = {
                 "cells": int(at.sum()), "cells_reached": int(pooled["has_path"].sum()),
                 "settled_cell_index": np.flatnonzero(at).tolist(),
@@ -1111,7 +1215,8 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
     if mechanisms in CONVERGED_REFERENCE_SETS and sizes["converged_reference_cells"] > 0:
         sub = np.sort(order["compare"][:min(sizes["converged_reference_cells"], pick.size)])
         converged = against_converged_reference(radio, tx, ori, cells_xyz[sub], _layers_at(m, sub), codebook,
-                                                points_per_cell=sizes["converged_reference_points"])
+                                                points_per_cell=sizes["converged_reference_points"],
+                                                seeds=sizes.get("converged_reference_seeds", CONVERGED_SEEDS))
     loop_cells = cells_xyz[order["loop"][:sizes["loop_cells"]]]
     per_call_s, calls_timed = _per_cell_loop_s(radio, tx, ori, loop_cells, sizes["loop_budget_s"])
     # the loop at the fewest samples of any set too (what the speed-up was judged on before the
@@ -1215,7 +1320,8 @@ def grid_axes(spec: dict) -> tuple[np.ndarray, np.ndarray]:
 def run_scene(name: str, spec: dict, num_rays: int, sets, quick: bool, seed: int, ray_counts=RAY_COUNTS,
               log=print, converged_points: int = 1, cells: dict | None = None,
               converged_cells: int | None = None, converged_map: bool = True,
-              points_per_side: dict | None = None, diffuse_gather: bool | str | None = None) -> dict:
+              points_per_side: dict | None = None, diffuse_gather: bool | str | None = None,
+              converged_seeds: int = CONVERGED_SEEDS) -> dict:
     """Every mechanism set of ``sets`` on one scene (``diffuse_gather``: the one-pass's
     ``diffuse_gather``, None: the config's ``ckm.diffuse_gather``); a set's sizes from :data:`COMPARE_CELLS`,
     :data:`LOOP_CELLS`, :data:`LOOP_BUDGET_S` (``quick`` picks the first of each pair), or ``cells``
@@ -1243,6 +1349,7 @@ def run_scene(name: str, spec: dict, num_rays: int, sets, quick: bool, seed: int
                      "equal_error_reference_rays": EQUAL_ERROR_REFERENCE_RAYS[q] if converged_map else 0,
                      "converged_reference_cells": n_converged,
                      "converged_reference_points": converged_points,
+                     "converged_reference_seeds": converged_seeds,
                      "repeats": WARM_REPEATS if s == "los_specular" else (0 if quick else 1),
                      "points_per_side": (points_per_side or {}).get(s, REFERENCE_POINTS_PER_SIDE[s]),
                      "diffuse_gather": diffuse_gather}
@@ -1471,8 +1578,9 @@ def report(results: dict) -> str:
         lines += [f"- {n}, {st}: " + judgement(r["targets_met_vs_converged_reference"]) for n, st, r in again]
     where = [(n, st, r) for n, st, r in _each_set(results) if r.get("targets_met_where_converged_reference_settled")]
     if where:
-        lines += ["", "The same on the cells where that reference has settled (its 3 x 3 points pooled, traced again "
-                  f"with 1/{CONVERGED_SETTLE_FACTOR} of its samples, `settled_cells`; coverage of every cell it reaches):", ""]
+        lines += ["", "The same on the cells where that reference has settled (its 3 x 3 points pooled, against a trace "
+                  "with fewer samples or between the two halves of its seeded runs, `settled_cells`; coverage of "
+                  "every cell it reaches):", ""]
         lines += [f"- {n}, {st}: " + judgement(r["targets_met_where_converged_reference_settled"]) for n, st, r in where]
     return "\n".join(lines) + "\n"
 
@@ -1559,8 +1667,11 @@ def _converged_reference_lines(results: dict) -> list[str]:
         f"paths come from a deterministic run at {CONVERGED_DIFFUSE_SAMPLES:.0e} samples. The one-pass cell layers "
         "against their centres (a centre differs from its cell's mean where a "
         "shadow edge crosses the cell: these errors bound the one-pass's from above). The main reference's figures "
-        "for the same set are in the tables above.", columns,
-        lambda c: row(c, c["errors_vs_centre"], c["reached_by_pathsolver"], c["covered_of_reached_pct"]))
+        "for the same set are in the tables above. Where `seeds` is more than 1 it is the union of that many "
+        "seeded runs' paths (each path once; their diffuse paths' mean, from seeded runs of the default "
+        "generator): what one run of their samples together finds.", ["seeds"] + columns,
+        lambda c: f"{c.get('seeds', 1)} | " + row(c, c["errors_vs_centre"], c["reached_by_pathsolver"],
+                                                   c["covered_of_reached_pct"]))
     settled = [(n, st, r["against_converged_reference"]["settled"]) for n, st, r in _each_set(results)
                if (r.get("against_converged_reference") or {}).get("settled")]
 
@@ -1579,10 +1690,12 @@ def _converged_reference_lines(results: dict) -> list[str]:
 
     if settled:
         lines += settled_table(
-            "The same at the centres, split by whether the converged reference has settled there: traced "
-            f"again with 1/{CONVERGED_SETTLE_FACTOR} of its samples, both reach the cell, its gain moves by "
-            f"at most 1 dB, its delay spread by at most {1e9 * CONVERGED_SETTLE_DELAY_SPREAD_S:g} ns and its best beam stays "
-            "(`settled_cells`). Elsewhere the reference is still moving with its samples:",
+            "The same at the centres, split by whether the converged reference has settled there: "
+            + "; ".join(sorted({f"{n} {st}: {c.get('by', f'traced again with 1/{CONVERGED_SETTLE_FACTOR} of its samples')}"
+                                for n, st, c in settled}))
+            + f". Both reach the cell, its gain moves by at most 1 dB, its delay spread by at most "
+            f"{1e9 * CONVERGED_SETTLE_DELAY_SPREAD_S:g} ns and its best beam stays (`settled_cells`). Elsewhere "
+            "the reference is still moving with its samples:",
             [(n, st, c["cells"], c["cells_reached"], c["errors_vs_centre"], c["errors_vs_centre_unsettled"])
              for n, st, c in settled])
     at_points = [(n, st, c["cell_points"]) for n, st, c in settled if c.get("cell_points")]
@@ -1793,7 +1906,11 @@ def parse_args(argv=None) -> tuple[argparse.Namespace, dict[str, int]]:
                     help="ray counts of the error curves (default 1e5 .. 1e8; --quick: up to 1e7)")
     ap.add_argument("--converged-points", type=int, choices=(1, 9), default=1,
                     help="points per cell of the converged reference: 1 (the centre) or 9 (3 x 3; "
-                         "9x its time: Munich's 40 cells about 30 min)")
+                         "about 4x its time: Munich 143 s a cell against 36 s)")
+    ap.add_argument("--converged-seeds", type=int, default=CONVERGED_SEEDS, metavar="K",
+                    help="seeded runs of the converged reference: 1 (one run, settled against a tenth of its "
+                         "samples) or an even K (the union of K runs' paths, settled by its two halves; "
+                         "K times one run's time; CONVERGED_SEEDS)")
     ap.add_argument("--cells", nargs="+", default=[], metavar="SET=N",
                     help="compared cells of a set instead of COMPARE_CELLS' (e.g. diffraction=100)")
     ap.add_argument("--converged-cells", type=int, default=None, metavar="N",
@@ -1814,6 +1931,8 @@ def parse_args(argv=None) -> tuple[argparse.Namespace, dict[str, int]]:
                 ap.error(f"{option} {item}: expected SET=N with SET one of {', '.join(MECHANISM_SETS)} and N >= 1")
             into[key] = int(n)
     args.points_per_side = points
+    if args.converged_seeds < 1 or (args.converged_seeds > 1 and args.converged_seeds % 2):
+        ap.error(f"--converged-seeds {args.converged_seeds}: expected 1 or an even count (two halves to settle by)")
     return args, cells
 
 
@@ -1831,6 +1950,7 @@ def main(argv=None) -> int:
                             "per_cell_loop_cells": LOOP_CELLS[q], "per_cell_loop_budget_s": LOOP_BUDGET_S[q],
                             "variant": variant, "seed": args.seed, "ray_counts": list(ray_counts),
                             "converged_reference_points_per_cell": args.converged_points,
+                            "converged_reference_seeds": args.converged_seeds,
                             "points_per_side": args.points_per_side,
                             "diffuse_gather": args.diffuse_gather,
                             "sweep_sets": {k: list(SWEEP_SETS[k]) for k in args.sets if k in SWEEP_SETS},
@@ -1848,7 +1968,8 @@ def main(argv=None) -> int:
                                             converged_cells=args.converged_cells,
                                             converged_map=not args.no_converged_map,
                                             points_per_side=args.points_per_side,
-                                            diffuse_gather=GATHER_CHOICES.get(args.diffuse_gather))
+                                            diffuse_gather=GATHER_CHOICES.get(args.diffuse_gather),
+                                            converged_seeds=args.converged_seeds)
         print(json.dumps({name: results["scenes"][name]}, indent=1), flush=True)
     results["settings"]["total_s"] = round(time.perf_counter() - t0, 1)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -397,7 +398,7 @@ def test_ckm_solver_targets_and_report_cover_every_mechanism_set(tmp_path):
     assert sets["los_specular"]["targets_met"]["path_gain_p50_vs_radio_map_solver_le_0.1_db"] is True
     conv = sets["diffraction"]["against_converged_reference"]
     assert "## Against a converged PathSolver reference" in md
-    assert (f"| canyon | diffraction | 8 | 9 | 5.0 | {conv['reached_by_pathsolver']} | "
+    assert (f"| canyon | diffraction | 1 | 8 | 9 | 5.0 | {conv['reached_by_pathsolver']} | "
             f"{cs._f(conv['covered_of_reached_pct'])} | {cs._pp(conv['errors_vs_centre']['path_gain_db'])} |") in md
     # against its 3 x 3 points (here the reference against itself: every error 0), with the cells'
     # own coverage (any of nine points reached), not the centres'
@@ -405,6 +406,7 @@ def test_ckm_solver_targets_and_report_cover_every_mechanism_set(tmp_path):
     assert "| canyon | diffraction | 8 | 9 | 5.0 | 8 | 75 | 0 / 0 | " in md
     # split by whether the reference has settled: at the centres, and at the cells' 3 x 3 points
     assert "The same at the centres, split by whether" in md and "| canyon | diffraction | 6 / 8 | 0 / 0 | " in md
+    assert "canyon diffraction: traced again with 1/10 of its samples. Both reach the cell" in md  # how it settled
     at = conv["settled"]["cell_points"]
     assert "The same against the 3 x 3 points of each cell pooled" in md
     assert f"| canyon | diffraction | 5 / 8 | {cs._pp(at['errors']['path_gain_db'])} | " in md
@@ -715,6 +717,38 @@ def test_merged_reference_takes_diffuse_paths_from_one_run_and_the_rest_from_the
     assert m.vertices_m is None and m.los[0, 0].sum() == 1
 
 
+@dataclass(frozen=True)
+class _StubSolverConfig:
+    """A stub PathSolver's settings: what ckm_solver._samples copies with other values."""
+    samples_per_src: int
+    diffuse_reflection: bool
+    seed: int = 40
+
+    def model_copy(self, update):
+        return replace(self, **update)
+
+
+def _stub_paths(amp: np.ndarray, kinds: np.ndarray, tau_s: np.ndarray, valid: np.ndarray, vertices_m=None):
+    """A stub PathSolver's TracedPaths: one antenna pair, amplitudes ``amp`` [rx, path], interaction
+    kinds ``kinds`` [depth, path] at every receiver, arrival and departure at zenith 1 rad."""
+    from simart_pipeline.radio.tracer import TracedPaths
+
+    n, p = amp.shape
+    z = np.zeros((n, 1, p), np.float32)
+    return TracedPaths(a=amp.astype(np.complex64).reshape(n, 1, 1, 1, p), tau_s=tau_s,
+                       theta_t=z + 1.0, phi_t=z, theta_r=z + 1.0, phi_r=z, doppler_hz=z,
+                       interaction=np.tile(kinds[None, None], (n, 1, 1, 1)), valid=valid, vertices_m=vertices_m)
+
+
+def _zero_one_pass_layers(cells: int) -> dict:
+    """One-pass layers of ``cells`` cells, every value 0 (one beam): the errors are the reference's."""
+    from benchmarks import ckm_solver as cs
+
+    return {"has_path": np.ones(cells, bool), "path_gain_db": np.zeros(cells), "toa_s": np.zeros(cells),
+            "rms_delay_spread_s": np.zeros(cells), "los": np.zeros(cells, bool), "best_beam": np.zeros(cells, int),
+            "beam_gain_db": np.zeros((cells, 1)), **{k: np.zeros(cells) for k in cs.SPREADS}}
+
+
 def test_converged_reference_with_diffuse_reflection_merges_a_deterministic_diffuse_run(monkeypatch):
     """ckm_solver.against_converged_reference with diffuse reflection on: per part of
     CONVERGED_CELLS_PER_TRACE cells, every path without a diffuse reflection from a default-generator
@@ -722,25 +756,14 @@ def test_converged_reference_with_diffuse_reflection_merges_a_deterministic_diff
     run at the diffuse samples (PathSolver's diffuse paths grow with its samples: 1e8 would not fit);
     each cell traced once per run and its layers in the cells' order. A stub PathSolver whose paths
     say which run made them: the reference gains are exactly R (off run) + S (diffuse run) per cell."""
-    from dataclasses import dataclass, replace
-
     from benchmarks import ckm_solver as cs
-    from simart_pipeline.radio.tracer import TracedPaths
     from simart_pipeline.vocabulary import InteractionKind as K
-
-    @dataclass(frozen=True)
-    class Config:
-        samples_per_src: int
-        diffuse_reflection: bool
-
-        def model_copy(self, update):
-            return replace(self, **update)
 
     centres = np.array([[10.0 * i, 0.0, 1.5] for i in range(5)])
     calls = []
 
     class Radio:
-        solver_config = Config(10, True)
+        solver_config = _StubSolverConfig(10, True)
 
         def trace(self, tx, ori, points, deterministic=True):
             cfg = self.solver_config
@@ -751,22 +774,16 @@ def test_converged_reference_with_diffuse_reflection_merges_a_deterministic_diff
             kinds = [[int(K.SPECULAR)]] + ([[int(K.DIFFUSE)]] if cfg.diffuse_reflection else [])
             amp = np.stack([amp_r] + ([3e-5 * (rx + 1)] if cfg.diffuse_reflection else []), -1)
             n, p = amp.shape
-            z = np.zeros((n, 1, p), np.float32)
-            return TracedPaths(a=amp.astype(np.complex64).reshape(n, 1, 1, 1, p),
-                               tau_s=np.tile(np.arange(1, p + 1, dtype=float) * 1e-7, (n, 1, 1)),
-                               theta_t=z + 1.0, phi_t=z, theta_r=z + 1.0, phi_r=z, doppler_hz=z,
-                               interaction=np.tile(np.array(kinds, np.uint8).T[None, None], (n, 1, 1, 1)),
-                               valid=np.ones((n, 1, p), bool))
+            return _stub_paths(amp, np.array(kinds, np.uint8).T, np.tile(np.arange(1, p + 1, dtype=float) * 1e-7, (n, 1, 1)),
+                               np.ones((n, 1, p), bool))
 
     monkeypatch.setattr(cs, "CONVERGED_CELLS_PER_TRACE", 2)
     codebook = np.ones((1, 1), np.complex64)
-    fast = {"has_path": np.ones(5, bool), "path_gain_db": np.zeros(5), "toa_s": np.zeros(5),
-            "rms_delay_spread_s": np.zeros(5), "los": np.zeros(5, bool), "best_beam": np.zeros(5, int),
-            "beam_gain_db": np.zeros((5, 1)), **{k: np.zeros(5) for k in cs.SPREADS}}
+    fast = _zero_one_pass_layers(5)
     radio = Radio()
     out = cs.against_converged_reference(radio, np.zeros(3), np.zeros(3), centres, fast, codebook,
                                          samples=1000, diffuse_samples=100, settle_factor=1)
-    assert radio.solver_config == Config(10, True)  # restored
+    assert radio.solver_config == _StubSolverConfig(10, True)  # restored
     assert [c[:3] for c in calls] == [(1000, False, False), (100, True, True)] * 3
     assert [c[3] for c in calls[::2]] == [[0.0, 10.0], [20.0, 30.0], [40.0]]
     assert [c[3] for c in calls[1::2]] == [c[3] for c in calls[::2]]
@@ -806,12 +823,75 @@ def test_converged_reference_with_diffuse_reflection_merges_a_deterministic_diff
     np.testing.assert_allclose(out["per_cell"]["reference_cell_points"]["path_gain_db"], want_db, atol=1e-4)
     # diffuse reflection off (the diffraction set): one default-generator run of every cell
     calls.clear()
-    radio.solver_config = Config(10, False)
+    radio.solver_config = _StubSolverConfig(10, False)
     out = cs.against_converged_reference(radio, np.zeros(3), np.zeros(3), centres, fast, codebook, samples=1000)
     assert [c[:3] for c in calls] == [(1000, False, False), (100, False, False)]  # and the settle trace
     assert out["diffuse_samples_per_src"] is None and out["settled"]["diffuse_samples_per_src"] is None
     np.testing.assert_allclose(out["errors_vs_centre"]["path_gain_db"]["p95"],
                                np.percentile(np.abs(20 * np.log10(1e-4 * np.arange(1, 6))), 95), rtol=1e-4)
+
+
+def test_converged_reference_from_seeded_runs_is_their_union_and_settles_by_halves(monkeypatch):
+    """ckm_solver.against_converged_reference(seeds=4), known answers from a stub PathSolver whose
+    runs depend on their seed: every non-diffuse run finds each cell's specular path, and two rare
+    paths appear only in some seeds (cell 0's in the second run alone, cell 1's in the second and
+    fourth); the diffuse runs' diffuse power is 1, 2, 3, 4 times a base. The reference counts each
+    found path once (the union), whichever runs found it, and the diffuse power's mean (2.5 times);
+    cell 0, whose rare path only the first half found (+10 dB), has not settled, cell 1, found by
+    both halves, has. Every run of each kind traced once per part, with seeds of its own."""
+    from benchmarks import ckm_solver as cs
+    from simart_pipeline.vocabulary import InteractionKind as K
+
+    centres = np.array([[10.0 * i, 0.0, 1.5] for i in range(5)])
+    calls = []
+
+    class Radio:
+        solver_config = _StubSolverConfig(10, True)
+
+        def trace(self, tx, ori, points, deterministic=True, with_vertices=False):
+            cfg = self.solver_config
+            calls.append((cfg.samples_per_src, cfg.diffuse_reflection, deterministic, with_vertices, cfg.seed))
+            rx = (points[:, 0] / 10.0).round().astype(int)
+            k = cfg.seed - 40
+            amp = [1e-4 * (rx + 1)]  # the specular path every run finds
+            kinds = [int(K.SPECULAR)]
+            if cfg.diffuse_reflection:  # a diffuse run: its specular path and a diffuse one
+                amp.append(3e-5 * (rx + 1) * np.sqrt(k - 3))  # seeds 44..47: power 1, 2, 3, 4 x base
+                kinds.append(int(K.DIFFUSE))
+            else:
+                amp.append(np.where(rx == 0, 3e-4 * (k == 1), np.where(rx == 1, 2e-4 * (k in (1, 3)), 0.0)))
+                kinds.append(int(K.SPECULAR))
+            amp = np.stack(amp, -1)
+            n, p = amp.shape
+            vert = np.zeros((n, 1, 1, p, 3), np.float32)
+            vert[..., 0] = rx[:, None, None, None]
+            vert[:, 0, 0, 1, 1] = 1.0  # the second path's point apart from the first's
+            return _stub_paths(amp, np.array(kinds, np.uint8)[None], np.full((n, 1, p), 1e-7), (amp != 0)[:, None, :],
+                               vert if with_vertices else None)
+
+    monkeypatch.setattr(cs, "CONVERGED_CELLS_PER_TRACE", 2)
+    codebook = np.ones((1, 1), np.complex64)
+    fast = _zero_one_pass_layers(5)
+    radio = Radio()
+    out = cs.against_converged_reference(radio, np.zeros(3), np.zeros(3), centres, fast, codebook,
+                                         samples=1000, diffuse_samples=100, seeds=4)
+    assert radio.solver_config == _StubSolverConfig(10, True)  # restored
+    per_part = [(1000, False, False, True, 40 + k) if i == 0 else (100, True, False, False, 44 + k)
+                for k in range(4) for i in range(2)]
+    assert calls == per_part * 3  # three parts of at most two cells
+    c = np.arange(1, 6)
+    rare = np.array([3e-4, 2e-4, 0, 0, 0]) ** 2
+    want_db = 10 * np.log10((1e-4 * c) ** 2 + rare + 2.5 * (3e-5 * c) ** 2)
+    np.testing.assert_allclose(out["per_cell"]["reference_centre"]["path_gain_db"], want_db, atol=2e-4)
+    first_db = 10 * np.log10((1e-4 * c) ** 2 + rare + 1.5 * (3e-5 * c) ** 2)
+    np.testing.assert_allclose(out["per_cell"]["first_half_centre"]["path_gain_db"], first_db, atol=2e-4)
+    last_db = 10 * np.log10((1e-4 * c) ** 2 + np.array([0, 4e-8, 0, 0, 0]) + 3.5 * (3e-5 * c) ** 2)
+    np.testing.assert_allclose(out["per_cell"]["last_half_centre"]["path_gain_db"], last_db, atol=2e-4)
+    st = out["settled"]
+    assert st["settled_cell_index"] == [1, 2, 3, 4] and (st["samples_per_src"], st["diffuse_samples_per_src"]) == (2000, 200)
+    assert out["seeds"] == 4 and out["diffuse_generator"] == "default (non-deterministic)"
+    with pytest.raises(ValueError, match="even"):
+        cs.against_converged_reference(radio, np.zeros(3), np.zeros(3), centres, fast, codebook, seeds=3)
 
 
 def test_settled_cells_follow_the_sampling_checks_gain_rule_and_the_delay_spread_target():
