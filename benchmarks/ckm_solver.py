@@ -48,7 +48,9 @@ Per scene and set:
   at :data:`CONVERGED_DIFFUSE_SAMPLES`; ``--converged-points 9``: at 3 x 3 points per cell, about
   4x the time, Munich 143 s a cell against 36 s at the centre; the errors also split by whether
   that reference has settled in the cell, traced again with a tenth of its samples,
-  :func:`settled_cells`, at the points too with ``--converged-points 9``);
+  :func:`settled_cells`, at the points too with ``--converged-points 9``; ``--converged-seeds K``:
+  the union of K seeded runs' paths instead of one run, settled by its two halves,
+  :data:`CONVERGED_SEEDS`);
 - **speed**: the one-pass time for the whole grid (warm: kernels compiled), one PathSolver call per
   cell (timed on random outdoor cells, at most :data:`LOOP_CELLS` calls or :data:`LOOP_BUDGET_S`
   seconds, and extrapolated to the grid's cells with outdoor area, which the reference mode would
