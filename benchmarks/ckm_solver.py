@@ -815,8 +815,8 @@ def reference_check(radio, tx, ori, centres_xyz: np.ndarray, fast_at: dict, ref_
 
 
 def settled_cells(coarse: dict, fine: dict, delay_spread_tolerance_s: float = CONVERGED_SETTLE_DELAY_SPREAD_S) -> np.ndarray:
-    """The cells whose reference layers ``fine`` (more samples) and ``coarse`` agree
-    (:data:`CONVERGED_SETTLE_FACTOR`): both reach the cell, its path gain agrees by the sampling
+    """The cells whose reference layers ``fine`` (more samples, :data:`CONVERGED_SETTLE_FACTOR`, or
+    the last half of seeded runs) and ``coarse`` (the first half) agree: both reach the cell, its path gain agrees by the sampling
     checks' rule (:func:`simart_pipeline.radio.convergence.within_tolerance`), its RMS delay spread
     (where both hold one) by at most ``delay_spread_tolerance_s`` as well
     (:data:`CONVERGED_SETTLE_DELAY_SPREAD_S`), and the best beam is the same."""

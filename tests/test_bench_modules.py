@@ -563,6 +563,12 @@ def test_bench_runs_ckm_solver_with_fewer_cells_and_no_convergence_diagnostics()
     assert [ckm_solver.GATHER_CHOICES.get(a.diffuse_gather) for a in (defaults, gather, auto)] == [None, True, "auto"]
     with pytest.raises(SystemExit):
         ckm_solver.parse_args(["--out", "x", "--diffuse-gather", "yes"])
+    # the converged reference's seeded runs: one by default, an even count, others refused
+    seeds, _ = ckm_solver.parse_args(["--out", "x", "--converged-seeds", "4"])
+    assert defaults.converged_seeds == ckm_solver.CONVERGED_SEEDS == 1 and seeds.converged_seeds == 4
+    for bad in ("3", "0"):
+        with pytest.raises(SystemExit):
+            ckm_solver.parse_args(["--out", "x", "--converged-seeds", bad])
 
 
 def test_rerun_alternates_baseline_and_this_commit_and_the_bench_asks_for_it(tmp_path, monkeypatch):
