@@ -609,17 +609,7 @@ def merged_paths(without_diffuse, with_diffuse):
     that hold a diffuse reflection. The other paths of ``with_diffuse`` are ``without_diffuse``'s
     own (PathSolver's specular and diffracted paths do not depend on the diffuse switch), found with
     its samples; each path is counted once."""
-    diffuse = (with_diffuse.interaction == int(InteractionKind.DIFFUSE)).any(axis=-2) & with_diffuse.valid
-
-    def cat(name):
-        a, b = getattr(without_diffuse, name), getattr(with_diffuse, name)
-        if a is None or b is None:
-            return None
-        if name == "valid":
-            b = diffuse
-        return np.concatenate([a, b], axis=-2 if name == "vertices_m" else -1)
-
-    return type(with_diffuse)(**{f.name: cat(f.name) for f in fields(with_diffuse)})
+    return _concat_paths([without_diffuse, diffuse_paths(with_diffuse)])
 
 
 def _concat_paths(parts: list):

@@ -755,6 +755,18 @@ def _zero_one_pass_layers(cells: int) -> dict:
             "beam_gain_db": np.zeros((cells, 1)), **{k: np.zeros(cells) for k in cs.SPREADS}}
 
 
+def _converged_reference_of(radio, centres: np.ndarray, **kw) -> dict:
+    """ckm_solver.against_converged_reference on a stub radio scene: zero one-pass layers, one beam,
+    the transmitter at the origin; the radio scene's PathSolver settings restored afterwards."""
+    from benchmarks import ckm_solver as cs
+
+    config = radio.solver_config
+    out = cs.against_converged_reference(radio, np.zeros(3), np.zeros(3), centres, _zero_one_pass_layers(len(centres)),
+                                         np.ones((1, 1), np.complex64), **kw)
+    assert radio.solver_config == config  # restored
+    return out
+
+
 def test_converged_reference_with_diffuse_reflection_merges_a_deterministic_diffuse_run(monkeypatch):
     """ckm_solver.against_converged_reference with diffuse reflection on: per part of
     CONVERGED_CELLS_PER_TRACE cells, every path without a diffuse reflection from a default-generator
@@ -784,12 +796,8 @@ def test_converged_reference_with_diffuse_reflection_merges_a_deterministic_diff
                                np.ones((n, 1, p), bool))
 
     monkeypatch.setattr(cs, "CONVERGED_CELLS_PER_TRACE", 2)
-    codebook = np.ones((1, 1), np.complex64)
-    fast = _zero_one_pass_layers(5)
     radio = Radio()
-    out = cs.against_converged_reference(radio, np.zeros(3), np.zeros(3), centres, fast, codebook,
-                                         samples=1000, diffuse_samples=100, settle_factor=1)
-    assert radio.solver_config == _StubSolverConfig(10, True)  # restored
+    out = _converged_reference_of(radio, centres, samples=1000, diffuse_samples=100, settle_factor=1)
     assert [c[:3] for c in calls] == [(1000, False, False), (100, True, True)] * 3
     assert [c[3] for c in calls[::2]] == [[0.0, 10.0], [20.0, 30.0], [40.0]]
     assert [c[3] for c in calls[1::2]] == [c[3] for c in calls[::2]]
@@ -805,8 +813,7 @@ def test_converged_reference_with_diffuse_reflection_merges_a_deterministic_diff
     # settled cells: the same cells again at a tenth of both runs' samples; this stub's paths do not
     # depend on the samples, so every cell has settled and the errors there are the errors
     calls.clear()
-    out = cs.against_converged_reference(radio, np.zeros(3), np.zeros(3), centres, fast, codebook,
-                                         samples=1000, diffuse_samples=100)
+    out = _converged_reference_of(radio, centres, samples=1000, diffuse_samples=100)
     assert [c[:3] for c in calls] == [(1000, False, False), (100, True, True)] * 3 + [(100, False, False), (10, True, True)] * 3
     st = out["settled"]
     assert (st["cells"], st["cells_reached"], st["samples_per_src"], st["diffuse_samples_per_src"]) == (5, 5, 100, 10)
@@ -816,8 +823,7 @@ def test_converged_reference_with_diffuse_reflection_merges_a_deterministic_diff
     assert st["errors_vs_centre_unsettled"]["cells"] == 0 and st["errors_vs_centre_unsettled"]["best_beam_agreement_pct"] is None
     # at 3 x 3 points per cell: both traces at every point, the pooled layers settle on their own
     calls.clear()
-    out = cs.against_converged_reference(radio, np.zeros(3), np.zeros(3), centres, fast, codebook,
-                                         samples=1000, diffuse_samples=100, points_per_cell=9)
+    out = _converged_reference_of(radio, centres, samples=1000, diffuse_samples=100, points_per_cell=9)
     assert [c[:3] for c in calls] == [(1000, False, False), (100, True, True)] * 3 + [(100, False, False), (10, True, True)] * 3
     assert [len(c[3]) for c in calls[::2]] == [18, 18, 9] * 2
     at = out["settled"]["cell_points"]
@@ -830,7 +836,7 @@ def test_converged_reference_with_diffuse_reflection_merges_a_deterministic_diff
     # diffuse reflection off (the diffraction set): one default-generator run of every cell
     calls.clear()
     radio.solver_config = _StubSolverConfig(10, False)
-    out = cs.against_converged_reference(radio, np.zeros(3), np.zeros(3), centres, fast, codebook, samples=1000)
+    out = _converged_reference_of(radio, centres, samples=1000)
     assert [c[:3] for c in calls] == [(1000, False, False), (100, False, False)]  # and the settle trace
     assert out["diffuse_samples_per_src"] is None and out["settled"]["diffuse_samples_per_src"] is None
     np.testing.assert_allclose(out["errors_vs_centre"]["path_gain_db"]["p95"],
@@ -876,12 +882,8 @@ def test_converged_reference_from_seeded_runs_is_their_union_and_settles_by_halv
                                vert if with_vertices else None)
 
     monkeypatch.setattr(cs, "CONVERGED_CELLS_PER_TRACE", 2)
-    codebook = np.ones((1, 1), np.complex64)
-    fast = _zero_one_pass_layers(5)
     radio = Radio()
-    out = cs.against_converged_reference(radio, np.zeros(3), np.zeros(3), centres, fast, codebook,
-                                         samples=1000, diffuse_samples=100, seeds=4)
-    assert radio.solver_config == _StubSolverConfig(10, True)  # restored
+    out = _converged_reference_of(radio, centres, samples=1000, diffuse_samples=100, seeds=4)
     per_part = [(1000, False, False, True, 40 + k) if i == 0 else (100, True, False, False, 44 + k)
                 for k in range(4) for i in range(2)]
     assert calls == per_part * 3  # three parts of at most two cells
@@ -897,7 +899,7 @@ def test_converged_reference_from_seeded_runs_is_their_union_and_settles_by_halv
     assert st["settled_cell_index"] == [1, 2, 3, 4] and (st["samples_per_src"], st["diffuse_samples_per_src"]) == (2000, 200)
     assert out["seeds"] == 4 and out["diffuse_generator"] == "default (non-deterministic)"
     with pytest.raises(ValueError, match="even"):
-        cs.against_converged_reference(radio, np.zeros(3), np.zeros(3), centres, fast, codebook, seeds=3)
+        _converged_reference_of(radio, centres, seeds=3)
 
 
 def test_settled_cells_follow_the_sampling_checks_gain_rule_and_the_delay_spread_target():
