@@ -127,6 +127,7 @@ from scipy.constants import c as SPEED_OF_LIGHT
 
 from simart_pipeline import engine
 from simart_pipeline.ckm import one_pass as op
+from simart_pipeline.ckm.gather import DEFAULT_GATHER_PILOT_DIRECTIONS
 from simart_pipeline.ckm.moments import CellMoments, layers_from_moments, path_moments
 from simart_pipeline.config import SceneConfig
 from simart_pipeline.link.beams import dft_codebook
@@ -1168,6 +1169,7 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
         kw.setdefault("diffraction_resample_factor", cfg.ckm.diffraction_resample_factor)  # the config's default
         kw.setdefault("diffuse_gather", cfg.ckm.diffuse_gather if sizes.get("diffuse_gather") is None
                       else sizes["diffuse_gather"])
+        kw.setdefault("gather_pilot_directions", DEFAULT_GATHER_PILOT_DIRECTIONS if cfg.ckm.gather_guided else 0)
         return lambda: op.one_pass_moments(radio, tx, ori, x, y, [HEIGHT_M], n, MAX_DEPTH, codebook=codebook,
                                            rx_polarization=rx_polarization, solids=solids,
                                            cell_outdoor_fraction=frac, **switches, **kw)

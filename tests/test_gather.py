@@ -6,12 +6,13 @@ brute-force neighbour searches, and the main pass it must leave alone where no c
 import numpy as np
 import pytest
 
-from test_one_pass import _axes, _lambertian_ground_gain, _lambertian_ground_scene
+from test_one_pass import _axes, _cfg, _ground, _lambertian_ground_gain, _lambertian_ground_scene, _quad, _write_scene
 
 from simart_pipeline.ckm import gather as ga
 from simart_pipeline.ckm import one_pass as op
 from simart_pipeline.ckm import shoot_bounce as sb
 from simart_pipeline.ckm.outdoor import radio_solids
+from simart_pipeline.radio.tracer import RadioScene
 
 H_TX, H_RX = 10.0, 1.5
 TX = np.array([0.0, 0.0, H_TX])
@@ -215,3 +216,101 @@ def test_gather_sums_on_the_device_are_the_hosts(ground):
     assert host.diffuse_gather["pairs"] == device.diffuse_gather["pairs"] > 0
     for f in ("power", "power_sq", "p_excess_delay_s", "p_cos"):
         np.testing.assert_allclose(getattr(device, f), getattr(host, f), rtol=1e-9, atol=0, err_msg=f)
+
+
+def test_triangle_solid_angle_is_an_octant_and_a_far_triangles_area_over_r_squared():
+    """The octant triangle (1, 0, 0), (0, 1, 0), (0, 0, 1) seen from the origin fills pi / 2 sr
+    (an eighth of the sphere); a small triangle far away, its area / r^2."""
+    octant = np.eye(3)[None]
+    assert ga.triangle_solid_angle(octant, np.zeros((1, 3)))[0] == pytest.approx(np.pi / 2, rel=1e-12)
+    far = np.array([[[100.0, 0, 0], [100.0, 0.1, 0], [100.0, 0, 0.1]]])
+    assert ga.triangle_solid_angle(far, np.zeros((1, 3)))[0] == pytest.approx(0.005 / 100**2, rel=1e-4)
+
+
+def test_guided_directions_weights_integrate_the_sphere_and_each_faces_solid_angle():
+    """The guided rays' weights (multiple importance sampling, balance heuristic) are unbiased
+    whatever the guide: their sum over a point's rays averages 4 pi, and over the rays that meet a
+    face, its solid angle: a small far face the guide favours and a large near one it gives 30 %
+    (known solid angles, triangle_solid_angle), within 1 % over 20,000 points of 16 rays. A point
+    whose cell has no guide gets the uniform set of 4 pi / 16 sr each."""
+    tri = np.array([[[20.0, -1, 0], [20, 1, 0], [20, 0, 2]], [[3.0, -5, -1], [3, 5, -1], [3, 0, 6]]])
+    points = 20_000
+    origins = np.zeros((points, 3))
+    guide = {"start": np.array([0, 2, 2]), "face": np.array([0, 1]), "q": np.array([0.7, 0.3])}
+    cell_pos = np.zeros(points, np.int64)
+    cell_pos[-100:] = 1  # a cell without a guide
+    d, w = ga.guided_directions(np.arange(points), origins, cell_pos, guide, tri, ga.gather_rotations(points), 16, 0.75)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0, atol=1e-9)
+    np.testing.assert_array_equal(w[-100:], 4 * np.pi / 16)
+    assert (w[:-100] != 4 * np.pi / 16).any()
+    assert w[:-100].sum(1).mean() == pytest.approx(4 * np.pi, rel=0.01)
+    for t in range(2):
+        meets = np.array([[ga._face_density(*origins[p], *d[p, j], tri, t) > 0 for j in range(16)]
+                          for p in range(points - 100)])
+        omega = ga.triangle_solid_angle(tri[t:t + 1], np.zeros((1, 3)))[0]
+        assert (w[:-100] * meets).sum(1).mean() == pytest.approx(omega, rel=0.01), t
+        # the guide sends most rays there: far more than the face's share of the sphere
+        assert meets.mean() > 5 * omega / (4 * np.pi), t
+
+
+@pytest.fixture(scope="module")
+def panel(tmp_path_factory):
+    """A Lambertian panel (S = 1, 10 m x 10 m, 2 triangles) 30 m from a grid on a specular
+    ground (S = 0): the panel, lit by the transmitter, fills about 1 % of a cell's sky."""
+    panel = _quad([[30.0, -5, 0], [30.0, 5, 0], [30.0, 5, 10], [30.0, -5, 10]])
+    xml = _write_scene(tmp_path_factory.mktemp("panel"), {"ground": (_ground(), "medium_dry_ground"),
+                                                          "panel": (panel, "concrete")}, 0.2)
+    radio = RadioScene.from_config(xml, _cfg())
+    radio.scene.objects["ground"].radio_material.scattering_coefficient = 0.0
+    radio.scene.objects["panel"].radio_material.scattering_coefficient = 1.0
+    x, y = _axes(-6.0, 6, -6.0, 6, 2.0)
+    return radio, x, y
+
+
+def _gathered_on_panel(panel, directions, pilots, rays=100_000):
+    radio, x, y = panel
+    grid = sb.grid_from_centres(x, y, [H_RX])
+    tracer = sb.Tracer(radio, np.array([0.0, 0.0, H_TX]), np.eye(3), grid, rays, 2, False, None, specular=True,
+                       diffuse=True)
+    tracer.collect_lit(pairs=False)  # the lattice rays' first hits: the faces the guide may aim at
+    tracer.trace(0, rays, lambda dep, los: None)
+    got = np.zeros(grid.nx * grid.ny)
+    sink = lambda dep, los: got.__iadd__(np.bincount(dep["cell"].astype(np.int64),  # noqa: E731
+                                                     dep["power"].astype(np.float64), len(got)))
+    out, var = ga.diffuse_gather(radio, tracer, grid, np.arange(grid.nx * grid.ny), radio_solids(radio), sink,
+                                 photon_rays=rays, batch_rays=1 << 20, directions_per_point=directions,
+                                 pilot_directions=pilots)
+    return got, np.sqrt(var), out
+
+
+def test_guided_gather_agrees_with_many_uniform_rays_and_reports_less_noise(panel):
+    """The panel's diffuse light gathered with guided rays (the defaults: 8 pilots, 8 of 16 rays
+    at the lit faces) and with uniform rays (16 a point, and 256 as the reference: 4,096 a cell)
+    from the same photons: guided and 256 uniform agree over the grid within 5 % (measured 1.2 %)
+    and cell by cell within 4.5 of their combined standard deviations in 34 of 36 cells (measured
+    36); at the median cell the guided gather's reported relative deviation is under a quarter of
+    the 16 uniform rays' (measured 0.064 against 0.58) and so is its distance to the reference
+    (measured 5 % against 64 %), its rays meeting the lit panel (pairs with its photons: 20x the
+    uniform's)."""
+    guided, sd_g, out_g = _gathered_on_panel(panel, 16, 8)
+    uniform, sd_u, out_u = _gathered_on_panel(panel, 16, 0)
+    ref, sd_ref, _ = _gathered_on_panel(panel, 256, 0)
+    assert out_g["guided_cells"] == 36 and out_g["guide_faces"] == 72 and "guided_cells" not in out_u
+    assert (ref > 0).all() and (guided > 0).all()
+    assert abs(guided.sum() / ref.sum() - 1) < 0.05
+    assert np.mean(np.abs(guided - ref) < 4.5 * np.hypot(sd_g, sd_ref)) >= 34 / 36
+    assert np.median(sd_g / guided) < 0.25 * np.median(sd_u / np.maximum(uniform, 1e-300))
+    assert np.median(np.abs(guided / ref - 1)) < 0.25 * np.median(np.abs(uniform / ref - 1))
+    assert out_g["pairs"] > 10 * out_u["pairs"]
+
+
+def test_guided_gather_rays_in_batches_give_the_same_gather(panel, monkeypatch):
+    """Guided rays in batches of 1,000 give the same deposits as one batch, bit for bit: a
+    point's pilots, guided draws (hashed from its index) and weights are its own whatever the
+    batch."""
+    one = _gathered_on_panel(panel, 16, 8, rays=30_000)
+    monkeypatch.setattr(ga, "GATHER_RAYS_PER_BATCH", 1000)
+    many = _gathered_on_panel(panel, 16, 8, rays=30_000)
+    assert one[2]["guided_cells"] > 0 and one[2] == many[2]
+    np.testing.assert_array_equal(one[0], many[0])
+    np.testing.assert_array_equal(one[1], many[1])

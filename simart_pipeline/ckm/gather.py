@@ -33,9 +33,18 @@ estimates it in few-hit cells (final gathering, as in photon mapping, Jensen 199
    :data:`SAME_SIDE_COS`, plane offset within :data:`PLANE_TOLERANCE_M`) each give a connection
    to the gather ray's origin, Sionna's scattered field of that photon (``_scattered_field``,
    ``_received``: pattern, XPD, receiver polarisation as every deposit), weighted by the 2-D
-   Epanechnikov kernel (:func:`epanechnikov`) and ``4 pi / (directions) / |cos theta_x|``. Its
-   delay is the photon's path length plus the distance to the cell centre, its arrival direction
-   from the gather point to the centre, its departure the photon's: the same layers as any deposit.
+   Epanechnikov kernel (:func:`epanechnikov`) and ``w_sr / |cos theta_x|``, ``w_sr`` the gather
+   ray's solid angle (``4 pi / directions`` for uniform rays). Its delay is the photon's path
+   length plus the distance to the cell centre, its arrival direction from the gather point to the
+   centre, its departure the photon's: the same layers as any deposit.
+
+**Guided rays** (:func:`guide_faces`, :func:`guided_directions`). Where the light comes from a lit
+face that fills a small part of the cell's sky, uniform rays rarely meet it and a few carry the
+cell. So pilot rays from each point find the faces the transmitter lights directly (the lattice
+rays' first hits, :meth:`Tracer.collect_lit`); a cell's guide is what the pilots of its neighbours
+found and the lit faces near those; half a point's rays go to points drawn on the guide's faces,
+half stay uniform, each weighted by multiple importance sampling (the balance heuristic over
+both), so the estimate stays unbiased whatever the guide (docs/ckm-one-pass.md, "Session 43").
 
 In the chosen cells these deposits and the main pass's deposits whose last interaction was a
 lattice ray's diffuse reflection (first crossings after it and connections, tagged
@@ -52,6 +61,7 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from simart_pipeline.ckm.compiled import compiled
@@ -75,6 +85,28 @@ DEFAULT_GATHER_AUTO_MIN_SHARE = 0.25
 # ... counting the cells that would be few-hit cells at this many rays (effective count below
 # threshold x num_rays / this): the shares above are those at 1e7 rays, whatever the call's rays
 GATHER_AUTO_REFERENCE_RAYS = 10**7
+# Guided gathering (guide_faces, guided_directions): per gather point this many pilot rays find the
+# faces it sees that the transmitter lights directly (the lattice rays' first hits, Tracer.
+# collect_lit); the gather rays then go, DEFAULT_GATHER_GUIDED_SHARE of them, to points drawn on those faces
+# (multi-sample importance sampling with the balance heuristic, the rest uniform: unbiased whatever
+# the guide). A lit wall that fills 0.5 % of a cell's sky gets ~1 of 256 uniform rays (Munich's
+# (107.5, -84) m: -154 dB against PathSolver's -133, docs/ckm-one-pass.md "Session 43")
+# Half the rays guided and 6 photons a guided point (below) as the run-time/error front chose on
+# Munich at 1e7 rays: the same errors on the settled benchmark cells as 3/4 and 8 or 16 photons,
+# 1.92x RadioMapSolver's time side by side against 1.98-2.01x (uniform rays: 1.72x)
+DEFAULT_GATHER_PILOT_DIRECTIONS = 8
+DEFAULT_GATHER_GUIDED_SHARE = 0.5
+# photons examined per gather point where the rays are guided: guided rays meet lit faces, where
+# photons are dense (16: 4.3x the pairs of uniform rays, and their deposits' time)
+GUIDED_GATHER_NEIGHBOURS = 6
+GUIDE_NEIGHBOUR_CELLS = 1  # a cell's guide: the lit faces the pilots of the cells this near found
+GUIDE_EXPAND_M = 15.0  # ... and the lit faces whose centroids lie this near a found one's
+GUIDE_MAX_FACES = 16  # per cell at most (the largest expected shares, see guide_faces)
+# faces larger than this are not aimed at: area sampling spreads over all of a face, and the ground
+# plane of a city scene (two triangles of ~1 km^2 on Munich) is lit somewhere but rarely near the cell
+GUIDE_MAX_FACE_AREA_M2 = 5000.0
+_PILOT_SEED = 0x9117
+_GUIDE_SEED = 0x6D1D
 PLANE_TOLERANCE_M = 0.05  # a photon's point lies this close to the gather point's face plane
 SAME_SIDE_COS = 0.999  # and its face normal (incoming side) within 2.6 deg of the gather face's
 MAX_RECORDER_VOXELS = 1 << 26  # the photon recorder's voxel grid: 64 MB at most
@@ -159,10 +191,12 @@ def gather_directions(rotations: np.ndarray, per_point: int) -> np.ndarray:
     return np.einsum("pij,kj->pki", rotations, base)
 
 
-def cast_gather_rays(tracer, origins: np.ndarray, directions: np.ndarray) -> dict:
+def cast_gather_rays(tracer, origins: np.ndarray, directions: np.ndarray, w_sr: np.ndarray | None = None) -> dict:
     """First hits of the gather rays (``directions [P, K, 3]`` from ``origins [P, 3]``) on faces
     that scatter (``S > 0``): per hit its point, the unit normal of its face towards the origin,
-    ``|cos|`` of the ray at the face, and the origin's row."""
+    ``|cos|`` of the ray at the face, the origin's row, the global face and the ray's weight in
+    steradians (``w_sr [P, K]``: one over the density of its direction, :func:`guided_directions`;
+    default ``4 pi / K``, uniform directions)."""
     dr, mi = tracer.dr, tracer.mi
     num_points, k = directions.shape[:2]
     o = np.repeat(origins, k, axis=0)
@@ -172,10 +206,10 @@ def cast_gather_rays(tracer, origins: np.ndarray, directions: np.ndarray) -> dic
     pi = tracer.scene.ray_intersect_preliminary(ray, False)
     hit = pi.is_valid()
     ids = dr.reinterpret_array(mi.UInt32, pi.shape)
-    _, n = tracer.face_at(ids, pi.prim_index, hit)
+    face_id, n = tracer.face_at(ids, pi.prim_index, hit)
     s_coef = dr.gather(mi.Float, tracer.scat[0], ids, hit)
     hit &= s_coef > 0
-    dr.eval(hit, n, pi.t)
+    dr.eval(hit, n, pi.t, face_id)
     keep = np.asarray(hit.numpy(), bool)
     t = pi.t.numpy()[keep].astype(np.float64)
     d = d[keep]
@@ -183,7 +217,9 @@ def cast_gather_rays(tracer, origins: np.ndarray, directions: np.ndarray) -> dic
     cos = np.einsum("ij,ij->i", d, normal)
     normal *= -np.sign(cos)[:, None]  # towards the origin
     row = np.repeat(np.arange(num_points), k)[keep]
-    return dict(x=o[keep] + t[:, None] * d, n=normal, cos=np.abs(cos), row=row)
+    w = np.full(num_points * k, 4 * np.pi / k) if w_sr is None else np.asarray(w_sr, np.float64).reshape(-1)
+    face = np.asarray(face_id.numpy(), np.int64)[keep]
+    return dict(x=o[keep] + t[:, None] * d, n=normal, cos=np.abs(cos), row=row, face=face, w_sr=w[keep])
 
 
 def trace_photons(tracer, recorder: PhotonRecorder, photon_rays: int, batch_rays: int) -> dict | None:
@@ -204,9 +240,9 @@ def trace_photons(tracer, recorder: PhotonRecorder, photon_rays: int, batch_rays
     return recorder.photons()
 
 
-def gather_pairs(hits: dict, photons: dict, radius_m: float, neighbours: int = DEFAULT_GATHER_NEIGHBOURS):
+def gather_pairs(hits: dict, photons: dict, radius_m: float, neighbours: int | np.ndarray = DEFAULT_GATHER_NEIGHBOURS):
     """(gather hit, photon) index pairs and each gather hit's kernel radius: the ``neighbours``
-    photons nearest to the hit within ``radius_m`` are examined; where all of them lie within it
+    photons (a number, or one per hit) nearest to the hit within ``radius_m`` are examined; where all of them lie within it
     the radius shrinks to the farthest one's distance, which is left out (``(K - 1) / (pi r_K^2)``
     estimates a uniform density without bias, Jensen's k-nearest photon estimate), else it stays
     ``radius_m`` and every photon within it counts; of those, the photons on the hit's face plane
@@ -245,20 +281,23 @@ def gather_pairs(hits: dict, photons: dict, radius_m: float, neighbours: int = D
     _voxel_keys(x_hits, lo, float(radius_m), dims, hit_keys)
     hit_order = np.argsort(hit_keys)
 
+    k_of = np.broadcast_to(np.asarray(neighbours, np.int64), (len(x_hits),))
+    most = int(k_of.max())
+
     def part(rows_of):
         q, qn = np.ascontiguousarray(x_hits[rows_of]), np.ascontiguousarray(n_hits[rows_of])
         r = np.empty(len(rows_of))
-        rows = np.empty(len(rows_of) * neighbours, np.int64)
-        cols = np.empty(len(rows_of) * neighbours, np.int64)
-        dists = np.empty(len(rows_of) * neighbours)
+        rows = np.empty(len(rows_of) * most, np.int64)
+        cols = np.empty(len(rows_of) * most, np.int64)
+        dists = np.empty(len(rows_of) * most)
         n = _pairs_in_voxels(q, qn, p_sorted, n_sorted, order, starts, table_keys, table_voxels, bits, lo,
-                             float(radius_m), dims, float(radius_m), int(neighbours), SAME_SIDE_COS,
-                             PLANE_TOLERANCE_M, r, rows, cols, dists)
+                             float(radius_m), dims, float(radius_m), np.ascontiguousarray(k_of[rows_of]), most,
+                             SAME_SIDE_COS, PLANE_TOLERANCE_M, r, rows, cols, dists)
         radius[rows_of] = r
         return rows_of[rows[:n]], cols[:n].copy(), dists[:n].copy()
 
     threads = os.cpu_count() or 1
-    step = max(1, min(_PAIRS_PER_CHUNK // neighbours, -(-len(hit_order) // threads)))
+    step = max(1, min(_PAIRS_PER_CHUNK // most, -(-len(hit_order) // threads)))
     chunks = [hit_order[lo_:lo_ + step] for lo_ in range(0, len(hit_order), step)]
     with ThreadPoolExecutor(threads) as pool:  # the loop runs without the GIL
         parts = list(pool.map(part, chunks))
@@ -312,17 +351,18 @@ def _voxel_table(keys, bits):
 
 @compiled
 def _pairs_in_voxels(q, qn, p, pn, order, starts, table_keys, table_voxels, bits, lo, voxel, dims, radius,
-                     k, cos_min, plane_tol, out_radius, rows, cols, dists):
+                     k_of, most, cos_min, plane_tol, out_radius, rows, cols, dists):
     """:func:`gather_pairs` for the hits ``q`` (normals ``qn``) against the photons ``p`` (normals
     ``pn``) sorted by voxel (``order``: their indices before; ``starts``: each voxel's first):
-    each hit's ``k`` nearest within ``radius`` by insertion into a sorted list, its kernel radius,
-    its pairs on its plane and side. Returns the number of pairs written."""
+    each hit's ``k_of[j]`` (at most ``most``) nearest within ``radius`` by insertion into a sorted
+    list, its kernel radius, its pairs on its plane and side. Returns the number of pairs written."""
     size_mask = (1 << bits) - 1
     r2 = radius * radius
-    best_d2 = np.empty(k)
-    best = np.empty(k, np.int64)
+    best_d2 = np.empty(most)
+    best = np.empty(most, np.int64)
     n = 0
     for j in range(q.shape[0]):
+        k = k_of[j]
         m = 0
         c0 = np.int64(np.floor((q[j, 0] - lo[0]) / voxel))
         c1 = np.int64(np.floor((q[j, 1] - lo[1]) / voxel))
@@ -383,7 +423,7 @@ def epanechnikov(distance_m, radius_m):
 
 
 def gather_deposits(tracer, hits: dict, photons: dict, rows, cols, dists, radius_m: np.ndarray, origins: np.ndarray,
-                    cell_of: np.ndarray, centres: np.ndarray, directions_per_point: int, photon_rays: int,
+                    cell_of: np.ndarray, centres: np.ndarray, photon_rays: int,
                     points_per_cell: int, sink) -> np.ndarray:
     """The gathered deposits of the pairs (``rows``: gather hits, ``cols``: photons, ``dists``: their
     distances; ``radius_m``: each gather hit's kernel radius, :func:`epanechnikov`) handed to ``sink`` in chunks, in the tracer's deposit form
@@ -391,11 +431,12 @@ def gather_deposits(tracer, hits: dict, photons: dict, rows, cols, dists, radius
     from simart_pipeline.ckm.shoot_bounce import direction_terms
 
     dr, mi = tracer.dr, tracer.mi
-    # per pair: (1 / points a cell) (4 pi / directions) kernel (lambda / 4 pi)^2 (4 pi / photons)
-    # |E_s|^2 / |cos theta_x|; the solver divides each cell by its outdoor share (outdoor points /
-    # points a cell), which makes the sum over outdoor points their mean
-    scale = (4 * np.pi / directions_per_point) / points_per_cell * (
-        4 * np.pi / photon_rays) * (tracer._power_per_sr * tracer.grid.dx * tracer.grid.dy)
+    # per pair: (1 / points a cell) w_sr kernel (lambda / 4 pi)^2 (4 pi / photons) |E_s|^2 /
+    # |cos theta_x|, w_sr the gather ray's solid angle (4 pi / directions where they are uniform,
+    # cast_gather_rays); the solver divides each cell by its outdoor share (outdoor points / points
+    # a cell), which makes the sum over outdoor points their mean
+    scale = 1.0 / points_per_cell * (4 * np.pi / photon_rays) * (
+        tracer._power_per_sr * tracer.grid.dx * tracer.grid.dy)
 
     def vec(a):
         return mi.Vector3f(*(np.ascontiguousarray(a[:, c], np.float32) for c in range(3)))
@@ -417,7 +458,8 @@ def gather_deposits(tracer, hits: dict, photons: dict, rows, cols, dists, radius
         fs, _ = tracer._scattering_density(d, n, d_r, mi.UInt32(photons["pat"][k]), ko)
         e_re, e_im = tracer._scattered_field(d, ko, vec(photons["e_re"][k]), vec(photons["e_im"][k]),
                                              mi.Float(photons["kx"][k]), mi.Float(photons["w_diff"][k]) * fs)
-        weight = scale * epanechnikov(dists[lo:lo + _PAIRS_PER_CHUNK], radius_m[j]) / np.maximum(hits["cos"][j], 1e-3)
+        weight = scale * hits["w_sr"][j] * epanechnikov(dists[lo:lo + _PAIRS_PER_CHUNK], radius_m[j]) / np.maximum(
+            hits["cos"][j], 1e-3)
         power = tracer._received(e_re, e_im, ko) * mi.Float(weight.astype(np.float32))
         out = dict(cell=mi.UInt32(cell_of[row].astype(np.uint32)), power=power,
                    dist=mi.Float((photons["length"][k] + r_c).astype(np.float32)))
@@ -428,33 +470,261 @@ def gather_deposits(tracer, hits: dict, photons: dict, rows, cols, dists, radius
     return per_hit
 
 
+def triangle_vertices(tracer) -> np.ndarray:
+    """``[num faces, 3, 3]`` m: every face's vertices, numbered as the tracer's global faces
+    (:func:`.shoot_bounce.face_table`: shape by shape in ``mi_scene.shapes()`` order); kept on the
+    tracer after the first call."""
+    tri = getattr(tracer, "_triangle_vertices", None)
+    if tri is None:
+        parts = [shape.vertex_positions_buffer().numpy().reshape(-1, 3).astype(np.float64)[
+                 shape.faces_buffer().numpy().reshape(-1, 3).astype(np.int64)] for shape in tracer.scene.shapes()]
+        tri = np.concatenate(parts) if parts else np.zeros((0, 3, 3))
+        tracer._triangle_vertices = tri
+    return tri
+
+
+def triangle_solid_angle(tri: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Solid angle (sr) of each triangle ``tri [N, 3, 3]`` seen from ``points [N, 3]`` (Van
+    Oosterom and Strackee 1983: ``tan(omega / 2) = |a . (b x c)| / (abc + (a . b) c + (a . c) b
+    + (b . c) a)``, ``a, b, c`` the vectors to the vertices and their lengths)."""
+    a, b, c = (tri[:, k] - points for k in range(3))
+    la, lb, lc = (np.sqrt(np.einsum("ij,ij->i", v, v)) for v in (a, b, c))
+    num = np.abs(np.einsum("ij,ij->i", a, np.cross(b, c)))
+    den = la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", a, c) * lb + np.einsum(
+        "ij,ij->i", b, c) * la
+    return 2.0 * np.arctan2(num, den)
+
+
+def _cast_in_batches(tracer, origins: np.ndarray, per_point: int, directions_of) -> dict:
+    """:func:`cast_gather_rays` over the points in batches of about GATHER_RAYS_PER_BATCH rays
+    (a city's few-hit cells can ask for tens of millions); ``directions_of(rows)``: the
+    directions ``[n, per_point, 3]`` and weights (sr, or None) of the points ``rows``."""
+    step = max(1, GATHER_RAYS_PER_BATCH // int(per_point))
+    parts = []
+    for lo in range(0, len(origins), step):
+        rows = np.arange(lo, min(lo + step, len(origins)))
+        d, w = directions_of(rows)
+        part = cast_gather_rays(tracer, origins[rows], d, w)
+        part["row"] = part["row"] + lo
+        parts.append(part)
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def guide_faces(tracer, grid, cells: np.ndarray, origins: np.ndarray, cell_of: np.ndarray,
+                pilot_directions: int) -> dict | None:
+    """The faces each gathered cell's rays aim at, or None where the tracer collected no lit
+    faces (:meth:`Tracer.collect_lit`) or ``pilot_directions`` is 0.
+
+    ``pilot_directions`` uniform rays from each gather point (a Fibonacci set of their own
+    rotation) find the faces they first hit that scatter and that a lattice ray hit first (lit by
+    the transmitter directly), at most :data:`GUIDE_MAX_FACE_AREA_M2` large. A cell's guide is what
+    the pilots of the cells within :data:`GUIDE_NEIGHBOUR_CELLS` found (a wall that fills 0.5 % of
+    the sky is found by 47 % of one cell's 16 x 8 pilots, by 99.7 % of nine cells'), each face
+    with the share ``q ∝ (lattice hits / area) x solid angle from the cell centre`` (its direct
+    irradiance times its size in the cell's sky: its expected part of the gather, Lambertian and
+    unobstructed), the :data:`GUIDE_MAX_FACES` largest. Returns ``start`` (``[len(cells) + 1]``,
+    CSR over ``cells`` in their order), ``face``, ``q`` (summing to 1 per cell)."""
+    lit_hits = tracer.lit_face_hits
+    if lit_hits is None or int(pilot_directions) <= 0:
+        return None
+    tri = triangle_vertices(tracer)
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    lit = (lit_hits > 0) & (area > 0) & (area <= GUIDE_MAX_FACE_AREA_M2)
+    rotations = gather_rotations(len(origins), seed=_PILOT_SEED)
+    k = int(pilot_directions)
+    pilots = _cast_in_batches(tracer, origins, k, lambda rows: (gather_directions(rotations[rows], k), None))
+    keep = lit[pilots["face"]]
+    size = grid.nx * grid.ny * len(grid.heights)
+    position = np.full(size, -1, np.int64)
+    position[cells] = np.arange(len(cells))
+    h, iy, ix = np.unravel_index(cell_of[pilots["row"][keep]], grid.shape)
+    face = pilots["face"][keep]
+    keys = []
+    r = GUIDE_NEIGHBOUR_CELLS
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            ny_, nx_ = iy + dy, ix + dx
+            ok = (ny_ >= 0) & (ny_ < grid.ny) & (nx_ >= 0) & (nx_ < grid.nx)
+            pos = position[np.ravel_multi_index((h[ok], ny_[ok], nx_[ok]), grid.shape)]
+            keys.append(pos[pos >= 0] * len(tri) + face[ok][pos >= 0])
+    keys = np.unique(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
+    pos, face = keys // len(tri), keys % len(tri)
+    # a pilot that found one face of a lit building found the building: its other lit faces
+    # (a small one can carry a cell and be missed by every pilot) within GUIDE_EXPAND_M
+    lit_faces = np.flatnonzero(lit)
+    if len(face) and GUIDE_EXPAND_M > 0:
+        centroid = tri[lit_faces].mean(axis=1)
+        found = np.unique(face)
+        near = cKDTree(centroid).query_ball_point(tri[found].mean(axis=1), GUIDE_EXPAND_M)
+        counts = np.array([len(v) for v in near])
+        members = lit_faces[np.concatenate([np.asarray(v, np.int64) for v in near])]
+        owner = np.repeat(found, counts)  # found face -> each lit face near it
+        order_f = np.argsort(owner, kind="stable")
+        owner, members = owner[order_f], members[order_f]
+        lo_ = np.searchsorted(owner, face)
+        hi_ = np.searchsorted(owner, face, side="right")
+        reps = hi_ - lo_
+        idx = np.repeat(lo_ - np.concatenate([[0], np.cumsum(reps)[:-1]]), reps) + np.arange(reps.sum())
+        keys = np.unique(np.concatenate([keys, np.repeat(pos, reps) * len(tri) + members[idx]]))
+        pos, face = keys // len(tri), keys % len(tri)
+    q = lit_hits[face] / area[face] * triangle_solid_angle(tri[face], grid.centres()[cells[pos]])
+    # the GUIDE_MAX_FACES largest shares of each cell: by cell, then share, largest first
+    order = np.lexsort((-q, pos))
+    pos, face, q = pos[order], face[order], q[order]
+    first = np.searchsorted(pos, np.arange(len(cells) + 1))
+    rank = np.arange(len(pos)) - first[pos]
+    sel = (rank < GUIDE_MAX_FACES) & (q > 0)
+    pos, face, q = pos[sel], face[sel], q[sel]
+    start = np.searchsorted(pos, np.arange(len(cells) + 1))
+    q = q / np.bincount(pos, q, len(cells))[pos]
+    return {"start": start, "face": face, "q": q, "pilot_hits": int(len(pilots["face"])),
+            "lit_pilot_hits": int(keep.sum())}
+
+
+def guided_directions(rows: np.ndarray, origins: np.ndarray, cell_pos: np.ndarray, guide: dict, tri: np.ndarray,
+                      rotations: np.ndarray, per_point: int, guided_share: float) -> tuple[np.ndarray, np.ndarray]:
+    """Directions ``[len(rows), per_point, 3]`` of the gather points ``rows`` and each ray's
+    weight (sr): one over the density of all the point's techniques at its direction.
+
+    A point whose cell has a guide (:func:`guide_faces`) casts ``round(guided_share x
+    per_point)`` rays at points drawn uniformly on its guide's faces (the face by stratified
+    draws from the shares ``q``), the rest uniform (the Fibonacci set of that many, turned by the
+    point's rotation, as without a guide). Multi-sample importance sampling with the balance
+    heuristic (Veach and Guibas 1995): a ray in direction ``w`` weighs ``1 / (n_u / 4 pi + n_g
+    sum_t q_t pdf_t(w))``, ``pdf_t(w) = r^2 / (A_t |cos theta_t|)`` where the ray meets face
+    ``t`` (at ``r``) and 0 elsewhere, whichever technique drew it; the sum of a point's rays times
+    those weights is unbiased for the integral over the sphere whatever the guide, and the uniform
+    rays keep every direction reachable. A point without a guide: ``per_point`` uniform rays of
+    ``4 pi / per_point`` sr each, as without guiding. The draws hash the point's index: the same
+    whatever the batch."""
+    k = int(per_point)
+    n_g = int(round(float(guided_share) * k))
+    n_u = k - n_g
+    pos = cell_pos[rows]
+    start = guide["start"]
+    has = (start[pos + 1] > start[pos]) & (n_g > 0)
+    d = np.empty((len(rows), k, 3))
+    w = np.full((len(rows), k), 4 * np.pi / k)
+    if (~has).any():
+        d[~has] = gather_directions(rotations[rows[~has]], k)
+    g = np.flatnonzero(has)
+    if len(g):
+        if n_u:
+            d[g, :n_u] = gather_directions(rotations[rows[g]], n_u)
+        dg, wg = d[g], w[g]
+        _guided_rays(np.ascontiguousarray(origins[rows[g]]), rows[g].astype(np.int64), pos[g].astype(np.int64), start,
+                     guide["face"], guide["q"], tri, n_u, n_g, _GUIDE_SEED, dg, wg)
+        d[g], w[g] = dg, wg
+    return d, w
+
+
+def _guided_rays_py(o, point_id, pos, start, face, q, tri, n_u, n_g, seed, d, w):
+    """:func:`guided_directions`' draws and weights for points that have a guide (compiled
+    below): ``d [P, n_u + n_g, 3]`` holds the uniform directions in its first ``n_u`` columns;
+    the guided ones are drawn into the rest; ``w`` gets every ray's weight."""
+    for p in range(o.shape[0]):
+        a, b = start[pos[p]], start[pos[p] + 1]
+        for j in range(n_g):
+            u = (j + _hash01(seed, point_id[p], j, 0)) / n_g  # stratified over the shares
+            t = a
+            acc = q[a]
+            while acc < u and t < b - 1:
+                t += 1
+                acc += q[t]
+            r1 = np.sqrt(_hash01(seed, point_id[p], j, 1))
+            r2 = _hash01(seed, point_id[p], j, 2)
+            f = face[t]
+            x0 = (1.0 - r1) * tri[f, 0, 0] + r1 * (1.0 - r2) * tri[f, 1, 0] + r1 * r2 * tri[f, 2, 0] - o[p, 0]
+            x1 = (1.0 - r1) * tri[f, 0, 1] + r1 * (1.0 - r2) * tri[f, 1, 1] + r1 * r2 * tri[f, 2, 1] - o[p, 1]
+            x2 = (1.0 - r1) * tri[f, 0, 2] + r1 * (1.0 - r2) * tri[f, 1, 2] + r1 * r2 * tri[f, 2, 2] - o[p, 2]
+            n = max(np.sqrt(x0 * x0 + x1 * x1 + x2 * x2), 1e-12)
+            d[p, n_u + j, 0], d[p, n_u + j, 1], d[p, n_u + j, 2] = x0 / n, x1 / n, x2 / n
+        for j in range(n_u + n_g):
+            dens = n_u / (4.0 * np.pi)
+            for t in range(a, b):
+                dens += n_g * q[t] * _face_density(o[p, 0], o[p, 1], o[p, 2], d[p, j, 0], d[p, j, 1], d[p, j, 2],
+                                                   tri, face[t])
+            w[p, j] = 1.0 / dens
+
+
+def _face_density_py(ox, oy, oz, dx, dy, dz, tri, f):
+    """Density (per sr) of the direction ``d`` from ``o`` when a point is drawn uniformly on the
+    triangle ``tri[f]``: ``r^2 / (A |cos theta|)`` where the ray meets it (Moeller and Trumbore
+    1997), else 0."""
+    e1x, e1y, e1z = tri[f, 1, 0] - tri[f, 0, 0], tri[f, 1, 1] - tri[f, 0, 1], tri[f, 1, 2] - tri[f, 0, 2]
+    e2x, e2y, e2z = tri[f, 2, 0] - tri[f, 0, 0], tri[f, 2, 1] - tri[f, 0, 1], tri[f, 2, 2] - tri[f, 0, 2]
+    px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
+    det = e1x * px + e1y * py + e1z * pz
+    if abs(det) < 1e-12:
+        return 0.0
+    inv = 1.0 / det
+    tx, ty, tz = ox - tri[f, 0, 0], oy - tri[f, 0, 1], oz - tri[f, 0, 2]
+    uu = (tx * px + ty * py + tz * pz) * inv
+    if uu < 0.0 or uu > 1.0:
+        return 0.0
+    qx, qy, qz = ty * e1z - tz * e1y, tz * e1x - tx * e1z, tx * e1y - ty * e1x
+    vv = (dx * qx + dy * qy + dz * qz) * inv
+    if vv < 0.0 or uu + vv > 1.0:
+        return 0.0
+    r = (e2x * qx + e2y * qy + e2z * qz) * inv
+    if r <= 0.0:
+        return 0.0
+    nx, ny, nz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+    twice_area = np.sqrt(nx * nx + ny * ny + nz * nz)
+    cos = abs(dx * nx + dy * ny + dz * nz) / twice_area
+    return r * r / (0.5 * twice_area * max(cos, 1e-9))
+
+
+def _hash01_py(seed, a, b, c):
+    """A uniform number in [0, 1) from the integers (``seed, a, b, c``): splitmix64 of their
+    mix, so a draw depends on its point and index alone (not on the batch)."""
+    x = np.uint64(seed) ^ (np.uint64(a) * np.uint64(0x9E3779B97F4A7C15)) ^ (
+        np.uint64(b) * np.uint64(0xC2B2AE3D27D4EB4F)) ^ (np.uint64(c) * np.uint64(0x165667B19E3779F9))
+    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    x = x ^ (x >> np.uint64(31))
+    return float(x >> np.uint64(11)) * (1.0 / 9007199254740992.0)
+
+
+_hash01 = compiled(_hash01_py)
+_face_density = compiled(_face_density_py)
+_guided_rays = compiled(_guided_rays_py)
+
+
 def diffuse_gather(radio, tracer, grid, cells: np.ndarray, solids, sink, *, photon_rays: int,
                    batch_rays: int, directions_per_point: int = DEFAULT_GATHER_DIRECTIONS_PER_POINT,
-                   radius_m: float | None = None) -> tuple[dict, np.ndarray | None]:
+                   radius_m: float | None = None, pilot_directions: int = DEFAULT_GATHER_PILOT_DIRECTIONS,
+                   guided_share: float = DEFAULT_GATHER_GUIDED_SHARE) -> tuple[dict, np.ndarray | None]:
     """Gathered deposits of the last diffuse reflection for the flat ``cells`` into ``sink``
-    (module docstring); returns what it did and the variance of each cell's gathered power (the
-    gather rays as independent samples; None where nothing was gathered)."""
+    (module docstring), the rays guided towards the faces the transmitter lights
+    (:func:`guide_faces`, :func:`guided_directions`; ``pilot_directions=0``: uniform rays); returns
+    what it did and the variance of each cell's gathered power (the gather rays as independent
+    samples; None where nothing was gathered)."""
     radius = float(radius_m) if radius_m is not None else DEFAULT_GATHER_RADIUS_CELLS * min(grid.dx, grid.dy)
+    k = int(directions_per_point)
     out = {"cells": int(len(cells)), "photon_rays": int(photon_rays), "radius_m": radius,
-           "directions_per_point": int(directions_per_point), "gather_points": 0, "gather_hits": 0,
-           "photons": 0, "pairs": 0}
+           "directions_per_point": k, "gather_points": 0, "gather_hits": 0, "photons": 0, "pairs": 0}
     if not len(cells):
         return out, None
     origins, cell_of = gather_origins(radio, grid, cells, solids)
     out["gather_points"] = int(len(origins))
     if not len(origins):
         return out, None
-    # the gather rays in batches of about GATHER_RAYS_PER_BATCH (a city's few-hit cells can ask for
-    # tens of millions)
-    step = max(1, GATHER_RAYS_PER_BATCH // int(directions_per_point))
     rotations = gather_rotations(len(origins))  # each point's own, whatever its batch
-    parts = []
-    for lo in range(0, len(origins), step):
-        rows = slice(lo, min(lo + step, len(origins)))
-        part = cast_gather_rays(tracer, origins[rows], gather_directions(rotations[rows], int(directions_per_point)))
-        part["row"] = part["row"] + lo
-        parts.append(part)
-    hits = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    guide = guide_faces(tracer, grid, cells, origins, cell_of, pilot_directions)
+    if guide is None:
+        hits = _cast_in_batches(tracer, origins, k, lambda rows: (gather_directions(rotations[rows], k), None))
+    else:
+        tri = triangle_vertices(tracer)
+        size = grid.nx * grid.ny * len(grid.heights)
+        position = np.full(size, -1, np.int64)
+        position[cells] = np.arange(len(cells))
+        cell_pos = position[cell_of]
+        hits = _cast_in_batches(tracer, origins, k, lambda rows: guided_directions(
+            rows, origins, cell_pos, guide, tri, rotations, k, guided_share))
+        out.update(pilot_directions=int(pilot_directions), guided_share=float(guided_share),
+                   guided_cells=int(np.count_nonzero(np.diff(guide["start"]))), guide_faces=int(len(guide["face"])),
+                   pilot_hits=guide["pilot_hits"], lit_pilot_hits=guide["lit_pilot_hits"])
     out["gather_hits"] = int(len(hits["x"]))
     if not len(hits["x"]):
         return out, None
@@ -462,14 +732,19 @@ def diffuse_gather(radio, tracer, grid, cells: np.ndarray, solids, sink, *, phot
     if photons is None:
         return out, None
     out["photons"] = int(len(photons["p"]))
-    rows, cols, dists, radii = gather_pairs(hits, photons, radius)
+    neighbours = DEFAULT_GATHER_NEIGHBOURS
+    if guide is not None:  # the hits of guided points: GUIDED_GATHER_NEIGHBOURS
+        start = guide["start"]
+        point_guided = (start[cell_pos + 1] > start[cell_pos]) & (int(round(float(guided_share) * k)) > 0)
+        neighbours = np.where(point_guided[hits["row"]], GUIDED_GATHER_NEIGHBOURS, DEFAULT_GATHER_NEIGHBOURS)
+    rows, cols, dists, radii = gather_pairs(hits, photons, radius, neighbours)
     out["pairs"] = int(len(rows))
     per_hit = gather_deposits(tracer, hits, photons, rows, cols, dists, radii, origins, cell_of, grid.centres(),
-                              int(directions_per_point), int(photon_rays), OUTDOOR_SAMPLES_PER_AXIS**2, sink)
+                              int(photon_rays), OUTDOOR_SAMPLES_PER_AXIS**2, sink)
     # each gather ray is one sample of its cell's sum (a ray without a hit: a zero sample): the
     # variance of the sum over a cell's rays
     size = grid.nx * grid.ny * len(grid.heights)
-    rays = np.bincount(cell_of, minlength=size) * int(directions_per_point)
+    rays = np.bincount(cell_of, minlength=size) * k
     total = np.bincount(cell_of[hits["row"]], per_hit, size)
     sq = np.bincount(cell_of[hits["row"]], per_hit**2, size)
     variance = np.maximum(sq - total**2 / np.maximum(rays, 1), 0.0)

@@ -23,6 +23,7 @@ import numpy as np
 import xarray as xr
 
 from simart_pipeline.ckm import moments as mom
+from simart_pipeline.ckm.gather import DEFAULT_GATHER_PILOT_DIRECTIONS
 from simart_pipeline.ckm.grid import cell_centres, outside_region, tile_slices
 from simart_pipeline.ckm.outdoor import DEFAULT_MIN_OUTDOOR_FRACTION, OUTDOOR_SAMPLES_PER_AXIS
 from simart_pipeline.config import SceneConfig
@@ -164,6 +165,7 @@ def fast_moments(radio, cfg: SceneConfig, grid: TileGrid, weights: np.ndarray, t
             diffraction_resample_factor=cfg.ckm.diffraction_resample_factor,
             lattice_resample_factor=cfg.ckm.lattice_resample_factor,
             diffuse_connections=cfg.ckm.diffuse_connections, diffuse_gather=cfg.ckm.diffuse_gather,
+            gather_pilot_directions=DEFAULT_GATHER_PILOT_DIRECTIONS if cfg.ckm.gather_guided else 0,
             indoor=grid.inside_building | grid.outside_region[None], solids=solids, cell_outdoor_fraction=frac,
             # as the reference mode's receiver: its polarisation, not the whole field
             rx_polarization=rx.polarization if rx.pattern == "iso" else None,

@@ -96,7 +96,8 @@ from simart_pipeline.ckm.compiled import compiled as _compiled
 from simart_pipeline.ckm.moments import CellMoments, effective_count, layers_from_moments, too_few_hits
 from simart_pipeline.ckm.diffraction import STRETCHES_PER_PAIR
 from simart_pipeline.ckm.gather import (DEFAULT_GATHER_AUTO_MIN_SHARE, DEFAULT_GATHER_BELOW_EFFECTIVE_HITS,
-                                        DEFAULT_GATHER_DIRECTIONS_PER_POINT, DEFAULT_PHOTON_RAY_SHARE,
+                                        DEFAULT_GATHER_DIRECTIONS_PER_POINT, DEFAULT_GATHER_GUIDED_SHARE,
+                                        DEFAULT_GATHER_PILOT_DIRECTIONS, DEFAULT_PHOTON_RAY_SHARE,
                                         GATHER_AUTO_REFERENCE_RAYS)
 from simart_pipeline.ckm.outdoor import DEFAULT_MIN_OUTDOOR_FRACTION, outdoor_fraction, radio_solids
 from simart_pipeline.ckm.shoot_bounce import (DIRECTION_QUANTUM, NOT_A_BIN, Q_BITS, Q_OFFSET, TAGS, Grid,
@@ -839,7 +840,9 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
                      gather_auto_min_share: float = DEFAULT_GATHER_AUTO_MIN_SHARE,
                      gather_photon_share: float = DEFAULT_PHOTON_RAY_SHARE,
                      gather_directions_per_point: int = DEFAULT_GATHER_DIRECTIONS_PER_POINT,
-                     gather_radius_m: float | None = None) -> OnePassMoments:
+                     gather_radius_m: float | None = None,
+                     gather_pilot_directions: int = DEFAULT_GATHER_PILOT_DIRECTIONS,
+                     gather_guided_share: float = DEFAULT_GATHER_GUIDED_SHARE) -> OnePassMoments:
     """Per-cell power moments of one transmitter over a grid, from one shoot-and-bounce pass.
 
     :param radio: :class:`simart_pipeline.radio.tracer.RadioScene` (mesh, materials of its
@@ -916,7 +919,9 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
         (or that no ray reached), by final gathering from photons (:mod:`simart_pipeline.ckm.gather`):
         ``gather_directions_per_point`` gather rays from each of a cell's outdoor sample points, a
         photon pass of ``gather_photon_share x num_rays`` rays, a kernel of at most
-        ``gather_radius_m`` (None: one cell size); in those cells it is weighed with the main
+        ``gather_radius_m`` (None: one cell size), ``gather_guided_share`` of the gather rays
+        aimed at the faces the transmitter lights that ``gather_pilot_directions`` pilot rays a
+        point found (:func:`simart_pipeline.ckm.gather.guide_faces`; 0 pilots: uniform rays); in those cells it is weighed with the main
         pass's deposits whose last interaction was a lattice ray's diffuse reflection by their
         relative variances. ``"auto"``: so where the cells that would be few-hit cells at
         ``GATHER_AUTO_REFERENCE_RAYS`` (1e7) rays are at least ``gather_auto_min_share`` of the
@@ -972,8 +977,6 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
     acc = accumulator(grid, tx_position_m, codebook, ant, rot, radio.wavelength_m)
     with_diffraction = diffraction and int(max_depth) > 0
     reflections_before = 1 if specular_reflection and depth >= 2 and diffraction_with_reflections else 0
-    if with_diffraction:  # the lattice rays' hits name the lit wedges: collected as they are traced
-        tracer.collect_lit(pairs=bool(reflections_before))
     masked = frac < min_outdoor_fraction
     if indoor is not None:
         try:
@@ -992,6 +995,10 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
     if isinstance(diffuse_gather, str) and diffuse_gather != "auto":
         raise ValueError(f"diffuse_gather must be True, False or 'auto', got {diffuse_gather!r}")
     gathering = bool(diffuse_gather) and diffuse_reflection and depth > 0
+    # the lattice rays' first hits name the lit wedges and the faces the gather aims at
+    # (gather.guide_faces): collected as they are traced
+    if with_diffraction or gathering:
+        tracer.collect_lit(pairs=bool(reflections_before) and with_diffraction)
     if gathering:  # the part the gather replaces, summed apart as well
         tracer.tag_diffuse_last = True
         acc.diffuse_last = accumulator(grid, tx_position_m, codebook, ant, rot, radio.wavelength_m)
@@ -1030,7 +1037,7 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
             acc, radio, tracer, grid, masked.ravel(), frac.ravel(), float(gather_below_effective_hits),
             float(gather_auto_min_share) if diffuse_gather == "auto" else 0.0, int(num_rays), solids,
             int(max(1, round(float(gather_photon_share) * int(num_rays)))), int(batch_rays),
-            int(gather_directions_per_point), gather_radius_m,
+            int(gather_directions_per_point), gather_radius_m, int(gather_pilot_directions), float(gather_guided_share),
             lambda: accumulator(grid, tx_position_m, codebook, ant, rot, radio.wavelength_m))
     m = acc.moments()
     scale = np.where(masked, 0.0, 1.0 / np.maximum(frac, 1e-12))
@@ -1096,7 +1103,7 @@ def _resample_undersampled(acc: _Accumulator, wedges, factor: int, masked, frac,
 
 def _gather_diffuse(acc: _Accumulator, radio, tracer: Tracer, grid, masked, frac, below: float, min_share: float,
                     num_rays: int, solids, photon_rays: int, batch: int, directions_per_point: int, radius_m,
-                    new_accumulator) -> dict:
+                    pilot_directions: int, guided_share: float, new_accumulator) -> dict:
     """The diffuse gather of ``one_pass_moments(diffuse_gather=True)``: the cells outside the mask
     that no ray reached or whose effective count stays below ``below``, their last diffuse
     reflection gathered (:func:`simart_pipeline.ckm.gather.diffuse_gather`) and weighed there with
@@ -1133,7 +1140,8 @@ def _gather_diffuse(acc: _Accumulator, radio, tracer: Tracer, grid, masked, frac
     with _sink(gathered) as sink:
         out, var_gather = diffuse_gather(radio, tracer, grid, cells, solids, sink, photon_rays=photon_rays,
                                          batch_rays=batch, directions_per_point=directions_per_point,
-                                         radius_m=radius_m)
+                                         radius_m=radius_m, pilot_directions=pilot_directions,
+                                         guided_share=guided_share)
     out.update(record)
     if var_gather is None:
         return out

@@ -569,6 +569,7 @@ class Tracer:
         # reflection, no diffuse reflection of a diffracted ray
         self.diffuse_last_only = bool(diffuse_last_only)
         self._lit_face_mask = None  # [num faces] bool, see collect_lit
+        self._lit_face_hits = None  # [num faces] uint32: the lattice rays that hit each face first
         self.lit_pairs: list | None = None
         # a split or drawn interaction per hit where diffuse reflection or refraction is on; specular
         # reflection alone keeps the deterministic _reflect
@@ -885,6 +886,7 @@ class Tracer:
         hit's mirror ray is cast at depth 0 (:meth:`mirror_pair_keys`); else the tracer's own
         reflected rays give the second faces."""
         self._lit_face_mask = self.dr.zeros(self.mi.Bool, len(self.faces.normals))
+        self._lit_face_hits = self.dr.zeros(self.mi.UInt32, len(self.faces.normals))
         self.lit_pairs = [] if pairs else None
 
     @property
@@ -894,6 +896,15 @@ class Tracer:
         if self._lit_face_mask is None:
             return None
         return [np.flatnonzero(self._lit_face_mask.numpy()).astype(np.uint64)]
+
+    @property
+    def lit_face_hits(self) -> np.ndarray | None:
+        """``[num faces]`` how many lattice rays hit each face first since :meth:`collect_lit`
+        (each ray ``4 pi / num_rays`` sr of the transmitter's sphere: a face's share of the
+        directly incident power, up to the antenna pattern), None where nothing is collected."""
+        if self._lit_face_hits is None:
+            return None
+        return np.asarray(self._lit_face_hits.numpy(), np.float64)
 
     def _record_lit(self, depth: int, ids, prim, hit, prev, st=None, t=None):
         """Collect the lit faces (depth 0) and, after a specular reflection, the (first, second)
@@ -906,6 +917,7 @@ class Tracer:
         face, n = self.face_at(ids, prim, hit)
         if depth == 0:  # a mask on the device: nothing comes back per batch
             dr.scatter(self._lit_face_mask, True, face, hit)
+            dr.scatter_add(self._lit_face_hits, mi.UInt32(1), face, hit)
             if self.sampled and self.lit_pairs is not None:
                 self.lit_pairs.append(self.mirror_pair_keys(st["o"], st["d"], t, face, n, hit))
             return face, hit
