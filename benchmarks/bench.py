@@ -106,6 +106,9 @@ def _sum_ckm_solver(r):
             if st.get("targets_met_where_converged_reference_settled"):
                 lines.append(f"{name}, {ms}: targets, the same where it has settled: "
                              + judgement(st["targets_met_where_converged_reference_settled"]))
+            if st.get("targets_met_where_converged_reference_settled_by_layer"):
+                lines.append(f"{name}, {ms}: targets, each layer where it has settled in that layer: "
+                             + judgement(st["targets_met_where_converged_reference_settled_by_layer"]))
     return lines
 
 

@@ -50,7 +50,9 @@ Per scene and set:
   that reference has settled in the cell, traced again with a tenth of its samples,
   :func:`settled_cells`, at the points too with ``--converged-points 9``; ``--converged-seeds K``:
   the union of K seeded runs' paths instead of one run, settled by its two halves,
-  :data:`CONVERGED_SEEDS`);
+  :data:`CONVERGED_SEEDS`; and each layer where it has settled in that layer,
+  :func:`settled_by_layer`: gain, ToA and beams where gain and best beam have, spreads where every
+  layer has, ``targets_met_where_converged_reference_settled_by_layer``);
 - **speed**: the one-pass time for the whole grid (warm: kernels compiled), one PathSolver call per
   cell (timed on random outdoor cells, at most :data:`LOOP_CELLS` calls or :data:`LOOP_BUDGET_S`
   seconds, and extrapolated to the grid's cells with outdoor area, which the reference mode would
@@ -805,21 +807,40 @@ def reference_check(radio, tx, ori, centres_xyz: np.ndarray, fast_at: dict, ref_
             "signed_err_db_this_reference": np.round(fast_g - after, 2).tolist()}
 
 
-def settled_cells(coarse: dict, fine: dict, delay_spread_tolerance_s: float = CONVERGED_SETTLE_DELAY_SPREAD_S) -> np.ndarray:
+def settled_cells(coarse: dict, fine: dict, delay_spread_tolerance_s: float = CONVERGED_SETTLE_DELAY_SPREAD_S,
+                  delay_spread: bool = True) -> np.ndarray:
     """The cells whose reference layers ``fine`` (more samples, :data:`CONVERGED_SETTLE_FACTOR`, or
     the last half of seeded runs) and ``coarse`` (the first half) agree: both reach the cell, its path gain agrees by the sampling
     checks' rule (:func:`simart_pipeline.radio.convergence.within_tolerance`), its RMS delay spread
     (where both hold one) by at most ``delay_spread_tolerance_s`` as well
-    (:data:`CONVERGED_SETTLE_DELAY_SPREAD_S`), and the best beam is the same."""
+    (:data:`CONVERGED_SETTLE_DELAY_SPREAD_S`), and the best beam is the same. ``delay_spread=False``:
+    gain and best beam alone (the layers a far cell's few long paths leave settled while its spread
+    still moves: where those are judged, :func:`settled_by_layer`)."""
     from simart_pipeline.radio.convergence import within_tolerance
 
     both = coarse["has_path"] & fine["has_path"]
-    agree = within_tolerance(np.stack([coarse["path_gain_db"], fine["path_gain_db"]]),
-                             np.stack([coarse["rms_delay_spread_s"], fine["rms_delay_spread_s"]]))
     ds = np.stack([coarse["rms_delay_spread_s"], fine["rms_delay_spread_s"]])
+    if not delay_spread:
+        ds = np.full_like(ds, np.nan)
+    agree = within_tolerance(np.stack([coarse["path_gain_db"], fine["path_gain_db"]]), ds)
     with np.errstate(invalid="ignore"):
         ds_ok = ~np.isfinite(ds).all(0) | (np.abs(ds[1] - ds[0]) <= delay_spread_tolerance_s)
     return both & agree & ds_ok & (coarse["best_beam"] == fine["best_beam"])
+
+
+def settled_by_layer(fast_at: dict, ref: dict, coarse: dict, fine: dict) -> dict:
+    """Each layer judged where the reference has settled in it: gain, ToA and the beams on the
+    cells settled in gain and best beam (:func:`settled_cells` without the delay-spread rule), the
+    delay and angular spreads on the cells settled in every layer. ``errors``: a :func:`_compare`
+    result that merges the two (what :func:`targets` reads); the cells of each."""
+    gain_and_beam = settled_cells(coarse, fine, delay_spread=False)
+    every = settled_cells(coarse, fine)
+    e_gb = _compare(_subset(fast_at, gain_and_beam), _subset(ref, gain_and_beam))
+    e_all = _compare(_subset(fast_at, every), _subset(ref, every))
+    merged = {**e_gb, "rms_delay_spread_ns": e_all["rms_delay_spread_ns"], **{k: e_all[k] for k in SPREADS}}
+    return {"gain_and_beam_cells": int(gain_and_beam.sum()), "gain_and_beam_cell_index": np.flatnonzero(gain_and_beam).tolist(),
+            "every_layer_cells": int(every.sum()), "errors": merged,
+            "errors_unsettled_gain_and_beam": _compare(_subset(fast_at, ~gain_and_beam), _subset(ref, ~gain_and_beam))}
 
 
 def per_cell_values(layers: dict) -> dict:
@@ -945,7 +966,8 @@ def against_converged_reference(radio, tx, ori, centres_xyz: np.ndarray, fast_at
                           "cells_reached": int(ref["has_path"].sum()),
                           "settled_cell_index": np.flatnonzero(settled).tolist(),
                           "errors_vs_centre": _compare(_subset(fast_at, settled), _subset(ref, settled)),
-                          "errors_vs_centre_unsettled": _compare(_subset(fast_at, ~settled), _subset(ref, ~settled))}
+                          "errors_vs_centre_unsettled": _compare(_subset(fast_at, ~settled), _subset(ref, ~settled)),
+                          "by_layer": settled_by_layer(fast_at, ref, coarse, fine)}
         if points_per_cell == 9:  # the cell's layers settle on their own: its nine points pooled, both traces
             at = settled_cells(coarse_pooled, fine_pooled)
             out["settled"]["cell_points"] = {
@@ -953,7 +975,8 @@ def against_converged_reference(radio, tx, ori, centres_xyz: np.ndarray, fast_at
                 "settled_cell_index": np.flatnonzero(at).tolist(),
                 "errors": _compare(_subset(fast_at, at), _subset(pooled, at)),
                 "errors_vs_centre": _compare(_subset(fast_at, at), _subset(ref, at)),  # ToA: the layer's definition
-                "errors_unsettled": _compare(_subset(fast_at, ~at), _subset(pooled, ~at))}
+                "errors_unsettled": _compare(_subset(fast_at, ~at), _subset(pooled, ~at)),
+                "by_layer": settled_by_layer(fast_at, pooled, coarse_pooled, fine_pooled)}
     if points_per_cell == 9:  # the cell: reached where any of its nine points is
         out.update(reached_by_pathsolver_cell_points=int(pooled["has_path"].sum()),
                    covered_of_reached_pct_cell_points=_covered_of_reached_pct(fast_at["has_path"], pooled["has_path"]),
@@ -1291,6 +1314,8 @@ def run_set(name: str, mechanisms: str, xml: str, spec: dict, num_rays: int, ord
         out["targets_met_vs_converged_reference"] = targets_vs_converged(out, mechanisms)
         if (converged.get("settled") or {}).get("cell_points"):
             out["targets_met_where_converged_reference_settled"] = targets_vs_converged(out, mechanisms, settled=True)
+    if converged and (converged.get("settled") or {}).get("by_layer"):
+        out["targets_met_where_converged_reference_settled_by_layer"] = targets_where_settled_by_layer(out, mechanisms)
     return out
 
 
@@ -1442,6 +1467,20 @@ def targets_vs_converged(r: dict, mechanisms: str, settled: bool = False) -> dic
                     "errors_vs_cell_points": e3, "errors_vs_centre": ec}, mechanisms)
 
 
+def targets_where_settled_by_layer(r: dict, mechanisms: str) -> dict[str, bool | None]:
+    """:func:`targets` with each accuracy figure read where the converged reference has settled in
+    that layer (:func:`settled_by_layer`: at the 3 x 3 points pooled where those were traced, else at
+    the centres; ToA at the centres); coverage of every cell it reaches; speed and RadioMapSolver as
+    in :func:`targets`."""
+    c = r["against_converged_reference"]
+    at = c["settled"].get("cell_points") or c["settled"]
+    e = at["by_layer"]["errors"]
+    ec = {**e, "toa_ns": c["settled"]["by_layer"]["errors"]["toa_ns"]}
+    covered = c.get("covered_of_reached_pct_cell_points", c.get("covered_of_reached_pct"))
+    return targets({**r, "coverage": {"covered_of_reached_pct": covered},
+                    "errors_vs_cell_points": e, "errors_vs_centre": ec}, mechanisms)
+
+
 def judgement(met: dict[str, bool | None]) -> str:
     """Targets as "name met / NOT met / n/a", comma-separated (the report's and ``simart bench``'s)."""
     return ", ".join(f"{k} {'met' if v else 'NOT met' if v is False else 'n/a'}" for k, v in met.items())
@@ -1576,6 +1615,17 @@ def report(results: dict) -> str:
                   "with fewer samples or between the two halves of its seeded runs, `settled_cells`; coverage of "
                   "every cell it reaches):", ""]
         lines += [f"- {n}, {st}: " + judgement(r["targets_met_where_converged_reference_settled"]) for n, st, r in where]
+    by_layer = [(n, st, r) for n, st, r in _each_set(results)
+                if r.get("targets_met_where_converged_reference_settled_by_layer")]
+    if by_layer:
+        lines += ["", "The same with each layer judged where that reference has settled in it (`settled_by_layer`: "
+                  "gain, ToA and beams where its gain and best beam have, spreads where every layer has):", ""]
+        for n, st, r in by_layer:
+            b = r["against_converged_reference"]["settled"]
+            b = (b.get("cell_points") or b)["by_layer"]
+            lines.append(f"- {n}, {st} ({b['gain_and_beam_cells']} cells settled in gain and beam, "
+                         f"{b['every_layer_cells']} in every layer): "
+                         + judgement(r["targets_met_where_converged_reference_settled_by_layer"]))
     return "\n".join(lines) + "\n"
 
 

@@ -324,9 +324,11 @@ def _set_result(mechanisms: str, seed: int = 0) -> dict:
             "settled": {"samples_per_src": 10**7, "diffuse_samples_per_src": None, "s": 1.0, "cells": 6,
                         "cells_reached": 8, "settled_cell_index": [0, 1, 2, 3, 4, 5],
                         "errors_vs_centre": cs._compare(ref, ref), "errors_vs_centre_unsettled": cs._compare(fast, ref),
+                        "by_layer": cs.settled_by_layer(fast, ref, ref, ref),
                         "cell_points": {"cells": 5, "cells_reached": 8, "settled_cell_index": [0, 1, 2, 3, 4],
                                         "errors": cs._compare(fast, ref), "errors_vs_centre": cs._compare(ref, ref),
-                                        "errors_unsettled": cs._compare(ref, ref)}}}
+                                        "errors_unsettled": cs._compare(ref, ref),
+                                        "by_layer": cs.settled_by_layer(ref, ref, ref, ref)}}}
     if mechanisms in cs.EQUAL_ERROR_SETS:  # the one-pass reaches RadioMapSolver's 1e7-ray error at 1e6 rays
         ref_map = np.array([-90.0, -100.0, -80.0])
         run = {"one_pass": lambda n: (ref_map + 0.1 * (n < 10**6), n * 1e-6),
@@ -352,6 +354,7 @@ def _set_result(mechanisms: str, seed: int = 0) -> dict:
     if mechanisms in cs.CONVERGED_REFERENCE_SETS:
         r["targets_met_vs_converged_reference"] = cs.targets_vs_converged(r, mechanisms)
         r["targets_met_where_converged_reference_settled"] = cs.targets_vs_converged(r, mechanisms, settled=True)
+        r["targets_met_where_converged_reference_settled_by_layer"] = cs.targets_where_settled_by_layer(r, mechanisms)
     return r
 
 
@@ -422,6 +425,13 @@ def test_ckm_solver_targets_and_report_cover_every_mechanism_set(tmp_path):
     assert where["angular_spreads_p50_vs_cell_points_le_5_deg"] is False and again["angular_spreads_p50_vs_cell_points_le_5_deg"] is True
     assert where["toa_p50_vs_centre_le_1_ns"] is True and where["coverage_of_pathsolver_cells_ge_99_pct"] is False
     assert "The same on the cells where that reference has settled" in md
+    # each layer where it has settled in it (at the 3 x 3 points, where they were traced): here the
+    # one-pass is the reference there, so every accuracy figure is met; the coverage as above
+    by_layer = sets["diffraction"]["targets_met_where_converged_reference_settled_by_layer"]
+    assert by_layer["angular_spreads_p50_vs_cell_points_le_5_deg"] is True and by_layer["path_gain_p95_vs_cell_points_le_3_db"] is True
+    assert by_layer["coverage_of_pathsolver_cells_ge_99_pct"] is False
+    assert "The same with each layer judged where that reference has settled in it" in md
+    assert "- canyon, diffraction (8 cells settled in gain and beam, 8 in every layer): " in md
     # the map against the converged one: both cover 2 cells, |diff| 0.5 and 0 dB; points 1 cell, 4 / 0 dB
     assert "| canyon | diffraction | 16 | 9.0 | 3 / 3 / 2 | 0.25 / 0.475 | 2 | 2 / 3.8 |" in md
     # the second pass's front: per factor, the cell it fills (1 dB off) and the whole map (0.5, 0, 1 dB)
@@ -821,6 +831,8 @@ def test_converged_reference_with_diffuse_reflection_merges_a_deterministic_diff
     assert out["per_cell"]["settle_trace_centre"] == out["per_cell"]["reference_centre"]
     assert st["errors_vs_centre"]["path_gain_db"] == out["errors_vs_centre"]["path_gain_db"]
     assert st["errors_vs_centre_unsettled"]["cells"] == 0 and st["errors_vs_centre_unsettled"]["best_beam_agreement_pct"] is None
+    assert (st["by_layer"]["gain_and_beam_cells"], st["by_layer"]["every_layer_cells"]) == (5, 5)
+    assert st["by_layer"]["errors"]["path_gain_db"] == st["errors_vs_centre"]["path_gain_db"]
     # at 3 x 3 points per cell: both traces at every point, the pooled layers settle on their own
     calls.clear()
     out = _converged_reference_of(radio, centres, samples=1000, diffuse_samples=100, points_per_cell=9)
@@ -925,6 +937,9 @@ def test_settled_cells_follow_the_sampling_checks_gain_rule_and_the_delay_spread
         True, False, True, True, True, False, True, True]
     coarse["rms_delay_spread_s"][3] = 121e-9   # 21 ns: beyond 20 % of 100 ns as well
     assert not cs.settled_cells(coarse, fine, delay_spread_tolerance_s=np.inf)[3]
+    # gain and best beam alone: every spread may move
+    assert cs.settled_cells(coarse, fine, delay_spread=False).tolist() == [
+        True, False, True, True, True, False, True, True]
     coarse["has_path"][0] = False             # one trace does not reach it
     assert not cs.settled_cells(coarse, fine)[0]
 
@@ -1234,3 +1249,30 @@ def test_bench_summary_gives_the_ckm_judgements_against_each_reference():
     assert ("canyon, all: targets, the same where it has settled: "
             + cs.judgement(r["targets_met_where_converged_reference_settled"])) in lines
     assert r["targets_met_where_converged_reference_settled"] != r["targets_met_vs_converged_reference"]
+
+
+def test_settled_by_layer_judges_each_layer_where_the_reference_has_settled_in_it():
+    """ckm_solver.settled_by_layer, known answers on four cells: the reference's gain moves by 2 dB
+    between its two traces in cell 1 (settled in no layer), its delay spread by 8 ns in cell 2
+    (settled in gain and best beam, not in every layer). A one-pass 10 dB off in cell 1's gain and
+    50 ns off in cell 2's spread, exact elsewhere: its gain, ToA and beams are read on cells 0, 2
+    and 3, its spreads on 0 and 3, and every one of those errors is 0; over all four cells both
+    errors show."""
+    from benchmarks import ckm_solver as cs
+
+    ref = _layers(4, seed=3)
+    fine = {k: v.copy() for k, v in ref.items()}
+    coarse = {k: v.copy() for k, v in ref.items()}
+    coarse["path_gain_db"][1] += 2.0
+    coarse["rms_delay_spread_s"][2] += 8e-9
+    fast = {k: v.copy() for k, v in ref.items()}
+    fast["path_gain_db"][1] += 10.0
+    fast["rms_delay_spread_s"][2] += 50e-9
+    b = cs.settled_by_layer(fast, ref, coarse, fine)
+    assert b["gain_and_beam_cell_index"] == [0, 2, 3] and (b["gain_and_beam_cells"], b["every_layer_cells"]) == (3, 2)
+    e = b["errors"]
+    assert e["cells_with_paths_in_both"] == 3 and e["path_gain_db"]["p95"] == 0 and e["best_beam_agreement_pct"] == 100
+    assert e["rms_delay_spread_ns"]["p95"] == 0 and e["asa_deg"]["p95"] == 0
+    assert b["errors_unsettled_gain_and_beam"]["path_gain_db"]["p50"] == pytest.approx(10.0)
+    whole = cs._compare(fast, ref)
+    assert whole["path_gain_db"]["p95"] > 5 and whole["rms_delay_spread_ns"]["p95"] > 30
