@@ -90,10 +90,11 @@ GATHER_AUTO_REFERENCE_RAYS = 10**7
 # collect_lit); the gather rays then go, DEFAULT_GATHER_GUIDED_SHARE of them, to points drawn on those faces
 # (multi-sample importance sampling with the balance heuristic, the rest uniform: unbiased whatever
 # the guide). A lit wall that fills 0.5 % of a cell's sky gets ~1 of 256 uniform rays (Munich's
-# (107.5, -84) m: -154 dB against PathSolver's -133, docs/ckm-one-pass.md "Session 43")
-# Half the rays guided and 6 photons a guided point (below) as the run-time/error front chose on
-# Munich at 1e7 rays: the same errors on the settled benchmark cells as 3/4 and 8 or 16 photons,
-# 1.92x RadioMapSolver's time side by side against 1.98-2.01x (uniform rays: 1.72x)
+# (107.5, -84) m: -154 dB against PathSolver's -133, docs/ckm-one-pass.md "Session 43").
+# Half the rays guided and 6 photons a guided point (below): on Munich at 1e7 rays the same errors
+# on the settled benchmark cells as 3/4 of them and 8 or 16 photons, and the fastest: side by side
+# with RadioMapSolver 1.92x its time against 1.98-2.01x in one run (uniform rays 1.72x), 2.03x
+# against uniform rays' 1.85x in another (runs differ by about 0.1x)
 DEFAULT_GATHER_PILOT_DIRECTIONS = 8
 DEFAULT_GATHER_GUIDED_SHARE = 0.5
 # photons examined per gather point where the rays are guided: guided rays meet lit faces, where
@@ -242,8 +243,8 @@ def trace_photons(tracer, recorder: PhotonRecorder, photon_rays: int, batch_rays
 
 def gather_pairs(hits: dict, photons: dict, radius_m: float, neighbours: int | np.ndarray = DEFAULT_GATHER_NEIGHBOURS):
     """(gather hit, photon) index pairs and each gather hit's kernel radius: the ``neighbours``
-    photons (a number, or one per hit) nearest to the hit within ``radius_m`` are examined; where all of them lie within it
-    the radius shrinks to the farthest one's distance, which is left out (``(K - 1) / (pi r_K^2)``
+    photons (a number, or one per hit) nearest to the hit within ``radius_m`` are examined; where
+    all of them lie within it the radius shrinks to the farthest one's distance, which is left out (``(K - 1) / (pi r_K^2)``
     estimates a uniform density without bias, Jensen's k-nearest photon estimate), else it stays
     ``radius_m`` and every photon within it counts; of those, the photons on the hit's face plane
     and side are paired with it.
