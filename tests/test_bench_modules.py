@@ -1276,3 +1276,41 @@ def test_settled_by_layer_judges_each_layer_where_the_reference_has_settled_in_i
     assert b["errors_unsettled_gain_and_beam"]["path_gain_db"]["p50"] == pytest.approx(10.0)
     whole = cs._compare(fast, ref)
     assert whole["path_gain_db"]["p95"] > 5 and whole["rms_delay_spread_ns"]["p95"] > 30
+
+
+def test_saved_reference_judges_a_one_pass_on_the_cells_whose_saved_reference_settled():
+    """benchmarks.saved_reference, known answers on five saved cells: the reference's halves
+    differ by 2 dB in cell 1 and in the best beam in cell 2 (neither settled), cell 4 is reached by
+    neither half (not reached). A one-pass 0, 10, 3, 1 dB off (cell 4: no value) and wrong in cell
+    2's beam: on the settled cells 0 and 3, p50 0.5, p95 0.95, largest 1 dB, beams 100 %; over the
+    four reached cells p95 9.05 dB, beams 75 %. Without halves the settle trace decides; with
+    neither, no cell has settled. A variant is NAME=JSON; a broken one is refused by name."""
+    from benchmarks import saved_reference as sr
+
+    ref = {"path_gain_db": [-100.0, -110.0, -120.0, -90.0, None], "toa_ns": [1.0] * 5,
+           "rms_delay_spread_ns": [10.0] * 5, "best_beam": [1, 2, 3, 4, -1]}
+    first = {**ref, "path_gain_db": [-100.2, -111.0, -120.0, -90.1, None]}
+    last = {**ref, "path_gain_db": [-99.9, -109.0, -120.0, -90.0, None], "best_beam": [1, 2, 5, 4, -1]}
+    per_cell = {"centre_m": [[0.0, 0.0, 1.5]] * 5, "reference_centre": ref,
+                "first_half_centre": first, "last_half_centre": last}
+    assert sr.settled_gain_and_beam(per_cell).tolist() == [True, False, False, True, False]
+    gain = np.array([-100.0, -100.0, -117.0, -91.0, np.nan])
+    beam = np.array([1, 2, 0, 4, -1])
+    j = sr.judge(per_cell, gain, beam)
+    s, e = j["settled_in_gain_and_beam"], j["every_cell"]
+    assert (s["cells"], s["cells_with_a_value"], s["gain_db_p50"], s["gain_db_max"], s["best_beam_pct"]) == (2, 2, 0.5, 1.0, 100.0)
+    assert s["gain_db_p95"] == pytest.approx(0.95)
+    assert (e["cells"], e["cells_with_a_value"], e["best_beam_pct"]) == (4, 4, 75.0)
+    assert e["gain_db_p95"] == pytest.approx(np.percentile([0, 10, 3, 1], 95), abs=1e-3)
+    assert j["signed_error_db"] == [0.0, 10.0, 3.0, -1.0, None]
+    coarse = {**last, "path_gain_db": [-99.9, -111.5, -120.0, -90.0, None]}  # 1.5 dB off in cell 1
+    trace = {"centre_m": per_cell["centre_m"], "reference_centre": ref, "settle_trace_centre": coarse}
+    assert sr.settled_gain_and_beam(trace).tolist() == [True, False, False, True, False]
+    assert not sr.settled_gain_and_beam({"centre_m": per_cell["centre_m"], "reference_centre": ref}).any()
+    assert sr.parse_variants(['guided={}', 'uniform={"gather_pilot_directions": 0}']) == {
+        "guided": {}, "uniform": {"gather_pilot_directions": 0}}
+    assert sr.parse_variants([]) == sr.DEFAULT_VARIANTS
+    with pytest.raises(SystemExit, match="--variant broken"):
+        sr.parse_variants(["broken={oops"])
+    with pytest.raises(SystemExit, match="expected NAME=JSON"):
+        sr.parse_variants(["noequals"])
