@@ -43,22 +43,26 @@ def _column(values: dict, key: str) -> np.ndarray:
     return np.array([np.nan if v is None else v for v in values[key]], float)
 
 
+def _layers(values: dict) -> dict:
+    """Saved per-cell values (:func:`benchmarks.ckm_solver.per_cell_values`) as the layers
+    :func:`benchmarks.ckm_solver.settled_cells` reads."""
+    gain = _column(values, "path_gain_db")
+    return {"has_path": np.isfinite(gain), "path_gain_db": gain, "best_beam": np.array(values["best_beam"]),
+            "rms_delay_spread_s": 1e-9 * _column(values, "rms_delay_spread_ns")}
+
+
 def settled_gain_and_beam(per_cell: dict) -> np.ndarray:
-    """The saved cells whose reference has settled in path gain and best beam: its two halves
+    """The saved cells whose reference has settled in path gain and best beam
+    (:func:`benchmarks.ckm_solver.settled_cells` without the delay-spread rule): its two halves
     (``first_half_centre``, ``last_half_centre``) or, without them, its settle trace
     (``settle_trace_centre``) against itself agree; False everywhere where neither was saved."""
-    from simart_pipeline.radio.convergence import GAIN_TOLERANCE_DB
-
     if "first_half_centre" in per_cell:
         a, b = per_cell["first_half_centre"], per_cell["last_half_centre"]
     elif "settle_trace_centre" in per_cell:
         a, b = per_cell["settle_trace_centre"], per_cell["reference_centre"]
     else:
         return np.zeros(len(per_cell["reference_centre"]["best_beam"]), bool)
-    ga, gb = _column(a, "path_gain_db"), _column(b, "path_gain_db")
-    with np.errstate(invalid="ignore"):
-        gain = np.isfinite(ga) & np.isfinite(gb) & (np.abs(ga - gb) <= GAIN_TOLERANCE_DB)
-    return gain & (np.array(a["best_beam"]) == np.array(b["best_beam"]))
+    return cs.settled_cells(_layers(a), _layers(b), delay_spread=False)
 
 
 def judge(per_cell: dict, gain_db: np.ndarray, best_beam: np.ndarray) -> dict:

@@ -236,10 +236,11 @@ def test_guided_directions_weights_integrate_the_sphere_and_each_faces_solid_ang
     tri = np.array([[[20.0, -1, 0], [20, 1, 0], [20, 0, 2]], [[3.0, -5, -1], [3, 5, -1], [3, 0, 6]]])
     points = 20_000
     origins = np.zeros((points, 3))
-    guide = {"start": np.array([0, 2, 2]), "face": np.array([0, 1]), "q": np.array([0.7, 0.3])}
     cell_pos = np.zeros(points, np.int64)
     cell_pos[-100:] = 1  # a cell without a guide
-    d, w = ga.guided_directions(np.arange(points), origins, cell_pos, guide, tri, ga.gather_rotations(points), 16, 0.75)
+    guide = {"start": np.array([0, 2, 2]), "face": np.array([0, 1]), "q": np.array([0.7, 0.3]), "cell_pos": cell_pos,
+             "point_has_guide": cell_pos == 0}
+    d, w = ga.guided_directions(np.arange(points), origins, guide, tri, ga.gather_rotations(points), 16, 0.75)
     np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0, atol=1e-9)
     np.testing.assert_array_equal(w[-100:], 4 * np.pi / 16)
     assert (w[:-100] != 4 * np.pi / 16).any()

@@ -524,7 +524,9 @@ def guide_faces(tracer, grid, cells: np.ndarray, origins: np.ndarray, cell_of: n
     with the share ``q ∝ (lattice hits / area) x solid angle from the cell centre`` (its direct
     irradiance times its size in the cell's sky: its expected part of the gather, Lambertian and
     unobstructed), the :data:`GUIDE_MAX_FACES` largest. Returns ``start`` (``[len(cells) + 1]``,
-    CSR over ``cells`` in their order), ``face``, ``q`` (summing to 1 per cell)."""
+    CSR over ``cells`` in their order), ``face``, ``q`` (summing to 1 per cell), and per gather
+    point its cell's row in ``cells`` (``cell_pos``) and whether that cell has a guide
+    (``point_has_guide``)."""
     lit_hits = tracer.lit_face_hits
     if lit_hits is None or int(pilot_directions) <= 0:
         return None
@@ -557,15 +559,12 @@ def guide_faces(tracer, grid, cells: np.ndarray, origins: np.ndarray, cell_of: n
         centroid = tri[lit_faces].mean(axis=1)
         found = np.unique(face)
         near = cKDTree(centroid).query_ball_point(tri[found].mean(axis=1), GUIDE_EXPAND_M)
-        counts = np.array([len(v) for v in near])
+        counts = np.array([len(v) for v in near])  # CSR over `found`: the lit faces near each
+        offsets = np.concatenate([[0], np.cumsum(counts)])
         members = lit_faces[np.concatenate([np.asarray(v, np.int64) for v in near])]
-        owner = np.repeat(found, counts)  # found face -> each lit face near it
-        order_f = np.argsort(owner, kind="stable")
-        owner, members = owner[order_f], members[order_f]
-        lo_ = np.searchsorted(owner, face)
-        hi_ = np.searchsorted(owner, face, side="right")
-        reps = hi_ - lo_
-        idx = np.repeat(lo_ - np.concatenate([[0], np.cumsum(reps)[:-1]]), reps) + np.arange(reps.sum())
+        which = np.searchsorted(found, face)
+        reps = counts[which]
+        idx = np.repeat(offsets[which] - np.concatenate([[0], np.cumsum(reps)[:-1]]), reps) + np.arange(reps.sum())
         keys = np.unique(np.concatenate([keys, np.repeat(pos, reps) * len(tri) + members[idx]]))
         pos, face = keys // len(tri), keys % len(tri)
     q = lit_hits[face] / area[face] * triangle_solid_angle(tri[face], grid.centres()[cells[pos]])
@@ -578,11 +577,13 @@ def guide_faces(tracer, grid, cells: np.ndarray, origins: np.ndarray, cell_of: n
     pos, face, q = pos[sel], face[sel], q[sel]
     start = np.searchsorted(pos, np.arange(len(cells) + 1))
     q = q / np.bincount(pos, q, len(cells))[pos]
-    return {"start": start, "face": face, "q": q, "pilot_hits": int(len(pilots["face"])),
+    cell_pos = position[cell_of]
+    return {"start": start, "face": face, "q": q, "cell_pos": cell_pos,
+            "point_has_guide": start[cell_pos + 1] > start[cell_pos], "pilot_hits": int(len(pilots["face"])),
             "lit_pilot_hits": int(keep.sum())}
 
 
-def guided_directions(rows: np.ndarray, origins: np.ndarray, cell_pos: np.ndarray, guide: dict, tri: np.ndarray,
+def guided_directions(rows: np.ndarray, origins: np.ndarray, guide: dict, tri: np.ndarray,
                       rotations: np.ndarray, per_point: int, guided_share: float) -> tuple[np.ndarray, np.ndarray]:
     """Directions ``[len(rows), per_point, 3]`` of the gather points ``rows`` and each ray's
     weight (sr): one over the density of all the point's techniques at its direction.
@@ -601,9 +602,9 @@ def guided_directions(rows: np.ndarray, origins: np.ndarray, cell_pos: np.ndarra
     k = int(per_point)
     n_g = int(round(float(guided_share) * k))
     n_u = k - n_g
-    pos = cell_pos[rows]
+    pos = guide["cell_pos"][rows]
     start = guide["start"]
-    has = (start[pos + 1] > start[pos]) & (n_g > 0)
+    has = guide["point_has_guide"][rows] & (n_g > 0)
     d = np.empty((len(rows), k, 3))
     w = np.full((len(rows), k), 4 * np.pi / k)
     if (~has).any():
@@ -717,12 +718,8 @@ def diffuse_gather(radio, tracer, grid, cells: np.ndarray, solids, sink, *, phot
         hits = _cast_in_batches(tracer, origins, k, lambda rows: (gather_directions(rotations[rows], k), None))
     else:
         tri = triangle_vertices(tracer)
-        size = grid.nx * grid.ny * len(grid.heights)
-        position = np.full(size, -1, np.int64)
-        position[cells] = np.arange(len(cells))
-        cell_pos = position[cell_of]
         hits = _cast_in_batches(tracer, origins, k, lambda rows: guided_directions(
-            rows, origins, cell_pos, guide, tri, rotations, k, guided_share))
+            rows, origins, guide, tri, rotations, k, guided_share))
         out.update(pilot_directions=int(pilot_directions), guided_share=float(guided_share),
                    guided_cells=int(np.count_nonzero(np.diff(guide["start"]))), guide_faces=int(len(guide["face"])),
                    pilot_hits=guide["pilot_hits"], lit_pilot_hits=guide["lit_pilot_hits"])
@@ -734,10 +731,9 @@ def diffuse_gather(radio, tracer, grid, cells: np.ndarray, solids, sink, *, phot
         return out, None
     out["photons"] = int(len(photons["p"]))
     neighbours = DEFAULT_GATHER_NEIGHBOURS
-    if guide is not None:  # the hits of guided points: GUIDED_GATHER_NEIGHBOURS
-        start = guide["start"]
-        point_guided = (start[cell_pos + 1] > start[cell_pos]) & (int(round(float(guided_share) * k)) > 0)
-        neighbours = np.where(point_guided[hits["row"]], GUIDED_GATHER_NEIGHBOURS, DEFAULT_GATHER_NEIGHBOURS)
+    if guide is not None and int(round(float(guided_share) * k)) > 0:  # guided points' hits: fewer photons
+        neighbours = np.where(guide["point_has_guide"][hits["row"]], GUIDED_GATHER_NEIGHBOURS,
+                              DEFAULT_GATHER_NEIGHBOURS)
     rows, cols, dists, radii = gather_pairs(hits, photons, radius, neighbours)
     out["pairs"] = int(len(rows))
     per_hit = gather_deposits(tracer, hits, photons, rows, cols, dists, radii, origins, cell_of, grid.centres(),
