@@ -252,7 +252,9 @@ def gather_pairs(hits: dict, photons: dict, radius_m: float, neighbours: int | n
     The search is a voxel grid of side ``radius_m`` (a hash table of the photons' voxels: a city's
     box would hold millions of empty ones), the 27 voxels around a hit searched in a compiled loop,
     the hits in voxel order (neighbouring hits read the same photons: 1.8x faster than in ray
-    order, 0.72 -> 0.39 s on one thread) and split between threads. A k-d tree (``scipy.spatial.cKDTree``) found the same pairs
+    order, 0.72 -> 0.39 s on one thread) and split between threads; its own voxel first, and a voxel
+    no nearer than the k-th nearest photon found so far is skipped (Munich's 1.1 M guided gather
+    hits at 1e7 rays: the same pairs in 0.63 s against 1.15 s for all 27). A k-d tree (``scipy.spatial.cKDTree``) found the same pairs
     in 2.2x the time on Munich's 2.1 M gather hits (1.5 against 0.69 s). Pairs come in the hits'
     voxel order, each hit's by distance."""
     x_hits = np.ascontiguousarray(hits["x"], np.float64)
@@ -292,7 +294,8 @@ def gather_pairs(hits: dict, photons: dict, radius_m: float, neighbours: int | n
         cols = np.empty(len(rows_of) * most, np.int64)
         dists = np.empty(len(rows_of) * most)
         n = _pairs_in_voxels(q, qn, p_sorted, n_sorted, order, starts, table_keys, table_voxels, bits, lo,
-                             float(radius_m), dims, float(radius_m), np.ascontiguousarray(k_of[rows_of]), most,
+                             float(radius_m), dims, float(radius_m), _VOXEL_OFFSETS, np.ascontiguousarray(k_of[rows_of]),
+                             most,
                              SAME_SIDE_COS, PLANE_TOLERANCE_M, r, rows, cols, dists)
         radius[rows_of] = r
         return rows_of[rows[:n]], cols[:n].copy(), dists[:n].copy()
@@ -350,9 +353,15 @@ def _voxel_table(keys, bits):
     return table_keys, table_voxels
 
 
+# the 27 voxels around a gather hit's, its own first and the corners last: the nearest photons are
+# found early, and the voxels beyond the k-th nearest's distance are skipped (_pairs_in_voxels)
+_VOXEL_OFFSETS = np.array(sorted(((a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)),
+                                 key=lambda o: o[0] ** 2 + o[1] ** 2 + o[2] ** 2), np.int64)
+
+
 @compiled
 def _pairs_in_voxels(q, qn, p, pn, order, starts, table_keys, table_voxels, bits, lo, voxel, dims, radius,
-                     k_of, most, cos_min, plane_tol, out_radius, rows, cols, dists):
+                     offsets, k_of, most, cos_min, plane_tol, out_radius, rows, cols, dists):
     """:func:`gather_pairs` for the hits ``q`` (normals ``qn``) against the photons ``p`` (normals
     ``pn``) sorted by voxel (``order``: their indices before; ``starts``: each voxel's first):
     each hit's ``k_of[j]`` (at most ``most``) nearest within ``radius`` by insertion into a sorted
@@ -368,34 +377,42 @@ def _pairs_in_voxels(q, qn, p, pn, order, starts, table_keys, table_voxels, bits
         c0 = np.int64(np.floor((q[j, 0] - lo[0]) / voxel))
         c1 = np.int64(np.floor((q[j, 1] - lo[1]) / voxel))
         c2 = np.int64(np.floor((q[j, 2] - lo[2]) / voxel))
-        for a0 in range(max(c0 - 1, 0), min(c0 + 2, dims[0])):
-            for a1 in range(max(c1 - 1, 0), min(c1 + 2, dims[1])):
-                for a2 in range(max(c2 - 1, 0), min(c2 + 2, dims[2])):
-                    key = (a0 * dims[1] + a1) * dims[2] + a2
-                    s = _slot(key, bits)
-                    while table_keys[s] != -1 and table_keys[s] != key:
-                        s = (s + 1) & size_mask
-                    if table_keys[s] == -1:
-                        continue
-                    u = table_voxels[s]
-                    for t in range(starts[u], starts[u + 1]):
-                        e0, e1, e2 = p[t, 0] - q[j, 0], p[t, 1] - q[j, 1], p[t, 2] - q[j, 2]
-                        d2 = e0 * e0 + e1 * e1 + e2 * e2
-                        if d2 >= r2:
-                            continue
-                        if m < k:
-                            pos = m
-                            m += 1
-                        elif d2 < best_d2[k - 1]:
-                            pos = k - 1
-                        else:
-                            continue
-                        while pos > 0 and best_d2[pos - 1] > d2:
-                            best_d2[pos] = best_d2[pos - 1]
-                            best[pos] = best[pos - 1]
-                            pos -= 1
-                        best_d2[pos] = d2
-                        best[pos] = t
+        for o in range(offsets.shape[0]):
+            a0, a1, a2 = c0 + offsets[o, 0], c1 + offsets[o, 1], c2 + offsets[o, 2]
+            if a0 < 0 or a1 < 0 or a2 < 0 or a0 >= dims[0] or a1 >= dims[1] or a2 >= dims[2]:
+                continue
+            # a voxel no nearer than the search's bound holds no photon it would keep: skipped (a
+            # micrometre's slack: a photon's voxel came from a division, its bounds here from a product)
+            g0 = max(lo[0] + a0 * voxel - q[j, 0], q[j, 0] - (lo[0] + (a0 + 1) * voxel), 1e-6) - 1e-6
+            g1 = max(lo[1] + a1 * voxel - q[j, 1], q[j, 1] - (lo[1] + (a1 + 1) * voxel), 1e-6) - 1e-6
+            g2 = max(lo[2] + a2 * voxel - q[j, 2], q[j, 2] - (lo[2] + (a2 + 1) * voxel), 1e-6) - 1e-6
+            if g0 * g0 + g1 * g1 + g2 * g2 >= (best_d2[k - 1] if m == k else r2):
+                continue
+            key = (a0 * dims[1] + a1) * dims[2] + a2
+            s = _slot(key, bits)
+            while table_keys[s] != -1 and table_keys[s] != key:
+                s = (s + 1) & size_mask
+            if table_keys[s] == -1:
+                continue
+            u = table_voxels[s]
+            for t in range(starts[u], starts[u + 1]):
+                e0, e1, e2 = p[t, 0] - q[j, 0], p[t, 1] - q[j, 1], p[t, 2] - q[j, 2]
+                d2 = e0 * e0 + e1 * e1 + e2 * e2
+                if d2 >= r2:
+                    continue
+                if m < k:
+                    pos = m
+                    m += 1
+                elif d2 < best_d2[k - 1]:
+                    pos = k - 1
+                else:
+                    continue
+                while pos > 0 and best_d2[pos - 1] > d2:
+                    best_d2[pos] = best_d2[pos - 1]
+                    best[pos] = best[pos - 1]
+                    pos -= 1
+                best_d2[pos] = d2
+                best[pos] = t
         use = m
         out_radius[j] = radius
         if m == k:  # the k-th nearest sets the radius and lies on the kernel's rim: weight 0
