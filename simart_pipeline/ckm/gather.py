@@ -227,15 +227,15 @@ def trace_photons(tracer, recorder: PhotonRecorder, photon_rays: int, batch_rays
     """The photon pass: ``photon_rays`` rays of their own Fibonacci lattice (each ``4 pi /
     photon_rays`` sr, random streams numbered from 0 like the main lattice's, different rays)
     traced with the tracer's mechanisms, no deposits; returns the recorder's photons."""
-    saved = (tracer.num_rays, tracer.lattice_bins, tracer._lit_face_mask, tracer.tag_diffuse_last)
-    tracer.num_rays, tracer.lattice_bins, tracer._lit_face_mask = int(photon_rays), None, None
+    saved = (tracer.num_rays, tracer.lattice_bins, tracer._lit_face_hits, tracer.tag_diffuse_last)
+    tracer.num_rays, tracer.lattice_bins, tracer._lit_face_hits = int(photon_rays), None, None
     tracer.tag_diffuse_last, tracer.photons = False, recorder
     tracer.set_solid_angle(4 * np.pi / int(photon_rays))
     try:
         for start in range(0, int(photon_rays), int(batch_rays)):
             tracer.trace(start, min(start + int(batch_rays), int(photon_rays)), lambda *_: None)
     finally:
-        tracer.num_rays, tracer.lattice_bins, tracer._lit_face_mask, tracer.tag_diffuse_last = saved
+        tracer.num_rays, tracer.lattice_bins, tracer._lit_face_hits, tracer.tag_diffuse_last = saved
         tracer.photons = None
         tracer.set_solid_angle(4 * np.pi / tracer.num_rays)
     return recorder.photons()

@@ -1222,8 +1222,8 @@ def _resample_lattice(acc: _Accumulator, tracer: Tracer, factor: int, masked, fr
     rays = bins_of.rays_in(bins)
     out["replayed_rays"] = int(len(rays))
     # the second pass's rays are not tagged again; their first hits name no new wedges
-    tracer.lattice_bins, lit = None, tracer._lit_face_mask
-    tracer._lit_face_mask, tracer.undiffused_only = None, True
+    tracer.lattice_bins, lit = None, tracer._lit_face_hits
+    tracer._lit_face_hits, tracer.undiffused_only = None, True
     replay, finer = new_accumulator(), new_accumulator()
     try:
         with _sink(replay) as sink:
@@ -1239,7 +1239,7 @@ def _resample_lattice(acc: _Accumulator, tracer: Tracer, factor: int, masked, fr
                              directions=bins_of.finer_directions(chunk, per_bin))
     finally:
         tracer.set_solid_angle(4 * np.pi / tracer.num_rays)
-        tracer.lattice_bins, tracer._lit_face_mask, tracer.undiffused_only = bins_of, lit, False
+        tracer.lattice_bins, tracer._lit_face_hits, tracer.undiffused_only = bins_of, lit, False
     acc.replace(cells, replay.summed(), finer.summed())
     out["still_undersampled"] = int(len(_undersampled_cells(acc, masked, frac, min_hits, min_effective)))
     return out

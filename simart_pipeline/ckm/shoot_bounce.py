@@ -568,8 +568,9 @@ class Tracer:
         # PathSolver's diffuse model (one_pass_moments' diffuse_last_only): nothing after a diffuse
         # reflection, no diffuse reflection of a diffracted ray
         self.diffuse_last_only = bool(diffuse_last_only)
-        self._lit_face_mask = None  # [num faces] bool, see collect_lit
-        self._lit_face_hits = None  # [num faces] uint32: the lattice rays that hit each face first
+        # [num faces] uint32: the lattice rays that hit each face first (lit: > 0), see collect_lit;
+        # None: nothing is collected
+        self._lit_face_hits = None
         self.lit_pairs: list | None = None
         # a split or drawn interaction per hit where diffuse reflection or refraction is on; specular
         # reflection alone keeps the deterministic _reflect
@@ -885,7 +886,6 @@ class Tracer:
         without casting the rays again. With drawn interactions (a drawn one is no mirror) each first
         hit's mirror ray is cast at depth 0 (:meth:`mirror_pair_keys`); else the tracer's own
         reflected rays give the second faces."""
-        self._lit_face_mask = self.dr.zeros(self.mi.Bool, len(self.faces.normals))
         self._lit_face_hits = self.dr.zeros(self.mi.UInt32, len(self.faces.normals))
         self.lit_pairs = [] if pairs else None
 
@@ -893,9 +893,9 @@ class Tracer:
     def lit_faces(self) -> list[np.ndarray] | None:
         """The lit faces collected since :meth:`collect_lit` (one sorted array in a list, as
         ``lit_pairs`` holds its keys), None where nothing is collected."""
-        if self._lit_face_mask is None:
+        if self._lit_face_hits is None:
             return None
-        return [np.flatnonzero(self._lit_face_mask.numpy()).astype(np.uint64)]
+        return [np.flatnonzero(self._lit_face_hits.numpy()).astype(np.uint64)]
 
     @property
     def lit_face_hits(self) -> np.ndarray | None:
@@ -912,11 +912,10 @@ class Tracer:
         returns what depth 1 needs of depth 0 (its faces and hits). ``st``, ``t``: the depth-0
         rays and their hit distances, whose mirror rays give the pairs where interactions are drawn."""
         dr, mi = self.dr, self.mi
-        if self._lit_face_mask is None:
+        if self._lit_face_hits is None:
             return None
         face, n = self.face_at(ids, prim, hit)
-        if depth == 0:  # a mask on the device: nothing comes back per batch
-            dr.scatter(self._lit_face_mask, True, face, hit)
+        if depth == 0:  # counts on the device: nothing comes back per batch
             dr.scatter_add(self._lit_face_hits, mi.UInt32(1), face, hit)
             if self.sampled and self.lit_pairs is not None:
                 self.lit_pairs.append(self.mirror_pair_keys(st["o"], st["d"], t, face, n, hit))
