@@ -254,8 +254,9 @@ def gather_pairs(hits: dict, photons: dict, radius_m: float, neighbours: int | n
     the hits in voxel order (neighbouring hits read the same photons: 1.8x faster than in ray
     order, 0.72 -> 0.39 s on one thread) and split between threads; its own voxel first, and a voxel
     no nearer than the k-th nearest photon found so far is skipped (Munich's 1.1 M guided gather
-    hits at 1e7 rays: the same pairs in 0.63 s against 1.15 s for all 27). A k-d tree (``scipy.spatial.cKDTree``) found the same pairs
-    in 2.2x the time on Munich's 2.1 M gather hits (1.5 against 0.69 s). Pairs come in the hits'
+    hits at 1e7 rays: the same pairs in 0.63 s against 1.15 s for all 27). A k-d tree
+    (``scipy.spatial.cKDTree``) found the same pairs in 2.2x the time on Munich's 2.1 M gather hits
+    (1.5 against 0.69 s). Pairs come in the hits'
     voxel order, each hit's by distance."""
     x_hits = np.ascontiguousarray(hits["x"], np.float64)
     n_hits = np.ascontiguousarray(hits["n"], np.float64)
@@ -294,9 +295,9 @@ def gather_pairs(hits: dict, photons: dict, radius_m: float, neighbours: int | n
         cols = np.empty(len(rows_of) * most, np.int64)
         dists = np.empty(len(rows_of) * most)
         n = _pairs_in_voxels(q, qn, p_sorted, n_sorted, order, starts, table_keys, table_voxels, bits, lo,
-                             float(radius_m), dims, float(radius_m), _VOXEL_OFFSETS, np.ascontiguousarray(k_of[rows_of]),
-                             most,
-                             SAME_SIDE_COS, PLANE_TOLERANCE_M, r, rows, cols, dists)
+                             float(radius_m), dims, float(radius_m), _VOXEL_OFFSETS,
+                             np.ascontiguousarray(k_of[rows_of]), most, SAME_SIDE_COS, PLANE_TOLERANCE_M, r, rows,
+                             cols, dists)
         radius[rows_of] = r
         return rows_of[rows[:n]], cols[:n].copy(), dists[:n].copy()
 
@@ -363,9 +364,10 @@ _VOXEL_OFFSETS = np.array(sorted(((a, b, c) for a in (-1, 0, 1) for b in (-1, 0,
 def _pairs_in_voxels(q, qn, p, pn, order, starts, table_keys, table_voxels, bits, lo, voxel, dims, radius,
                      offsets, k_of, most, cos_min, plane_tol, out_radius, rows, cols, dists):
     """:func:`gather_pairs` for the hits ``q`` (normals ``qn``) against the photons ``p`` (normals
-    ``pn``) sorted by voxel (``order``: their indices before; ``starts``: each voxel's first):
-    each hit's ``k_of[j]`` (at most ``most``) nearest within ``radius`` by insertion into a sorted
-    list, its kernel radius, its pairs on its plane and side. Returns the number of pairs written."""
+    ``pn``) sorted by voxel (``order``: their indices before; ``starts``: each voxel's first), the
+    voxels around a hit's visited in the order of ``offsets`` (:data:`_VOXEL_OFFSETS`): each hit's
+    ``k_of[j]`` (at most ``most``) nearest within ``radius`` by insertion into a sorted list, its
+    kernel radius, its pairs on its plane and side. Returns the number of pairs written."""
     size_mask = (1 << bits) - 1
     r2 = radius * radius
     best_d2 = np.empty(most)
