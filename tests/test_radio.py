@@ -431,6 +431,92 @@ def test_a_duplicate_path_counts_once_and_a_near_equal_distinct_one_is_kept():
     assert np.sum(np.abs(out["a"][0, 0, 0, 0]) ** 2) == 3
 
 
+def test_a_path_diffracted_into_a_solid_is_dropped_and_one_through_a_wall_is_kept():
+    """A block x < 0 stands for a building part (points_inside: x < 0, |y| < 5); transmitter at
+    (10, -20, 5), receiver at (-10, 20, 1.5), north-west of it. Path 0: a diffraction at the
+    block's corner (0, -5), then a transmission out through its north wall (-4, 5): the leg
+    between them lies inside the block, which the path never entered (dropped). Path 1: a
+    diffraction at the corner, a reflection outside the block (kept). Path 2: in through the south
+    wall, out through the north one (no diffraction: kept, the leg inside is a transmission's).
+    Path 3: a diffraction whose leg in is shorter than MIN_JUDGED_LEG_M (not judged: kept).
+    Path 4: like path 0 but invalid already (untouched). Path 5: in through the south wall, a
+    diffraction inside the block, out through the north wall: both legs inside (kept). Judging
+    the leg out alone drops path 5; judging every leg drops path 2."""
+    from simart_pipeline.radio.tracer import MIN_JUDGED_LEG_M, drop_paths_diffracted_into_solids
+    from simart_pipeline.vocabulary import InteractionKind as K
+
+    depth, n = 3, 6
+    inter = np.zeros((1, 1, depth, n), np.uint8)
+    vert = np.zeros((1, 1, depth, n, 3), np.float32)
+    rows = [([K.DIFFRACTION, K.REFRACTION], [(0, -5, 4), (-4, 5, 2)]),
+            ([K.DIFFRACTION, K.SPECULAR], [(0, -5, 4), (12, 8, 2)]),
+            ([K.REFRACTION, K.REFRACTION], [(-3, -5, 4), (-6, 5, 2)]),
+            ([K.SPECULAR, K.DIFFRACTION, K.REFRACTION], [(0, -5.0, 4.0), (0, -5.0 + 0.5 * MIN_JUDGED_LEG_M, 4.0), (-4, 5, 2)]),
+            ([K.DIFFRACTION, K.REFRACTION], [(0, -5, 4), (-4, 5, 2)]),
+            ([K.REFRACTION, K.DIFFRACTION, K.REFRACTION], [(-3, -5, 4), (-2, 0, 3), (-4, 5, 2)])]
+    for p, (kinds, pts) in enumerate(rows):
+        inter[0, 0, :len(kinds), p] = kinds
+        vert[0, 0, :len(pts), p] = pts
+    valid = np.array([[[True, True, True, True, False, True]]])
+    d = {"valid": valid, "interaction": inter, "vertices_m": vert}
+    asked = []
+
+    def inside(points):
+        asked.append(len(points))
+        return (points[:, 0] < 0) & (np.abs(points[:, 1]) < 5)
+
+    out, dropped = drop_paths_diffracted_into_solids(d, np.array([[10.0, -20.0, 5.0]]), np.array([[-10.0, 20.0, 1.5]]),
+                                                     inside)
+    assert out["valid"][0, 0].tolist() == [False, True, True, True, False, True] and dropped == 1
+    assert d["valid"][0, 0].tolist() == [True, True, True, True, False, True]  # the input is not changed
+    assert asked == [2 * 3]  # paths 0, 1 and 5, leg in and leg out, in one call
+    # a path without a diffraction asks nothing
+    none = {"valid": valid.copy(), "interaction": np.where(inter == K.DIFFRACTION, K.SPECULAR, inter), "vertices_m": vert}
+    assert drop_paths_diffracted_into_solids(none, np.zeros((1, 3)), np.zeros((1, 3)), inside)[1] == 0
+
+
+def _box(x0, x1, y0, y1, z0, z1) -> trimesh.Trimesh:
+    b = trimesh.creation.box(extents=[x1 - x0, y1 - y0, z1 - z0])
+    b.apply_translation([(x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2])
+    return b
+
+
+def test_pathsolver_paths_diffracted_into_a_building_are_dropped(tiny_scene, tmp_path, monkeypatch):
+    """A building whose roof is a separate plate (its edges free edges, as on Munich) and a part
+    against its west wall, diffraction, edge diffraction and refraction at depth 2. PathSolver
+    returns paths that diffract at a roof edge or a corner into the building and leave it through
+    a wall (one transmission short) or reach a receiver inside it: the tracer drops them (counted),
+    and no path it returns has a diffraction whose legs lie on different sides of a solid. Without
+    the guard, such paths come out."""
+    from simart_pipeline.radio import tracer as trc
+
+    box = _box(0.0, 10.0, 0.0, 10.0, 0.0, 12.0)
+    side = np.abs(box.face_normals[:, 2]) < 0.5
+    parts = {"walls": (trimesh.Trimesh(box.vertices, box.faces[side], process=False), "concrete"),
+             "roof": (trimesh.Trimesh(box.vertices, box.faces[box.face_normals[:, 2] > 0.5], process=False), "metal"),
+             "part": (_box(-8.0, 0.0, 0.0, 9.0, 0.0, 9.0), "brick")}
+    cfg = _cfg(tiny_scene, _iso(diffraction=True, edge_diffraction=True, refraction=True, specular_reflection=True,
+                                 max_depth=2, samples_per_src=100_000))
+    tx = np.array([[25.0, -25.0, 6.0]])
+    rx = np.array([[-4.0, 15.0, 1.5], [-12.0, 5.0, 1.5], [5.0, 15.0, 1.5], [-4.0, 4.0, 1.5]])
+
+    xml = _write_scene(tmp_path / "s", parts, 0.2)
+
+    def trace():
+        radio = RadioScene.from_config(xml, cfg)
+        return radio, radio.trace(tx, np.zeros((1, 3)), rx, with_vertices=True)
+
+    judge = trc.drop_paths_diffracted_into_solids
+    radio, p = trace()
+    assert radio.paths_diffracted_into_solids > 0 and p.valid.any()
+    d = {"valid": p.valid, "interaction": p.interaction, "vertices_m": p.vertices_m}
+    assert judge(d, tx, rx, radio.points_inside)[1] == 0
+    monkeypatch.setattr(trc, "drop_paths_diffracted_into_solids", lambda d, *a: (d, 0))
+    radio, p = trace()
+    d = {"valid": p.valid, "interaction": p.interaction, "vertices_m": p.vertices_m}
+    assert judge(d, tx, rx, radio.points_inside)[1] > 0
+
+
 def test_paths_come_out_in_one_order_whatever_order_the_solver_returned_them_in():
     """Sionna's candidate generator appends candidates through an atomic counter, so on several
     threads two runs can return the same paths in another order. Paths of equal delay and

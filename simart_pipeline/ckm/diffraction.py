@@ -66,6 +66,17 @@ WEDGE_KEY_M = 1e-3      # end points closer than this are the same edge
 LEAK_OFFSET_M = 5e-2    # Sionna's offset of the visibility-test point off the wedge
 SPAWN_OFFSET_M = 1e-3   # diffracted rays start this far off the edge
 MAX_REFERENCE_DISTANCE_M = 1e4  # a diffracted ray meeting nothing: its field is taken this far out
+# A diffracted ray is tested for leaving into another solid this far along it from its spawn point
+# (the probe of Sionna's leak guard, LEAK_OFFSET_M); a wedge is tested for a solid against it at
+# BLOCKED_ARC_PROBES angles round its exterior at each of BLOCKED_ARC_STATIONS points along it, and
+# the ends of a blocked arc are found by BLOCKED_ARC_BISECTIONS halvings (DiffractionSampler._blocked_arcs)
+INSIDE_PROBE_M = LEAK_OFFSET_M
+BLOCKED_ARC_PROBES = 32
+BLOCKED_ARC_STATIONS = (0.125, 0.5, 0.875)
+BLOCKED_ARC_BISECTIONS = 7
+# a blocked arc is widened by this on either side: a ray at its very end grazes the face that bounds
+# it (a plate edge's ray along the wall below it), where the probe may fall on either side
+BLOCKED_ARC_MARGIN_RAD = 1e-3
 # Samples per lattice ray on the direct wedges, and the (image, wedge) pairs' share of those. Before
 # the pilot, 4 per ray on Munich gave a value in 96.6 % of the sampled outdoor cells PathSolver
 # reaches (benchmarks.ckm_solver, 1e7 rays, 2 m cells); with the pilot and the downward arc, 2 per
@@ -90,7 +101,7 @@ class DiffractionSampler:
     dict form of :class:`simart_pipeline.ckm.shoot_bounce.Tracer`."""
 
     def __init__(self, radio, tracer, tx_position_m, tx_rotation: np.ndarray, grid: Grid, reflections_after: int,
-                 edge_diffraction: bool, reflections_before: int = 0):
+                 edge_diffraction: bool, reflections_before: int = 0, solids=None):
         import drjit as dr
         import mitsuba as mi
 
@@ -110,6 +121,10 @@ class DiffractionSampler:
         self._u_lo = self._u_span = self._weight = None  # from pilot()
         self._dr_span = None
         self._counts = self._starts = None  # samples per pair of the last trace() and where they start
+        # the radio scene's solids (ckm.outdoor.radio_solids; made on first use where None) and, per
+        # pair, the arc of its exterior inside another solid (_blocked_arcs)
+        self.solids = solids
+        self._blocked = None
 
     @property
     def num_wedges(self) -> int:
@@ -145,14 +160,14 @@ class DiffractionSampler:
             direct = [np.zeros(0, np.uint64)]
         faces = tr.faces
         cols = self._candidates(faces.shape_and_primitive(np.unique(np.concatenate(direct))), None)
-        if self.reflections_before and reflected:
-            pairs = np.unique(np.concatenate(reflected))
+        pairs = np.unique(np.concatenate(reflected)) if self.reflections_before and reflected else ()
+        if len(pairs):  # none: no lattice ray met a second face after a specular reflection
             mirror = self._canonical_faces((pairs >> np.uint64(32)).astype(np.int64))  # one source per plane
             pairs = np.unique(np.column_stack([faces.shape_and_primitive(pairs & np.uint64(0xFFFFFFFF)), mirror]),
                               axis=0)
             cols = {k: np.concatenate([cols[k], v]) for k, v in self._candidates(pairs[:, :2], pairs[:, 2]).items()}
         self._wedge_np = cols
-        self._dr_all = None
+        self._dr_all = self._blocked = None
         self._u_lo = self._u_span = self._weight = None
         self._dr_span = None
         return self.num_wedges
@@ -257,6 +272,116 @@ class DiffractionSampler:
             self._dr_all = (wedges, vec(c["src"], mi.Point3f), vec(c["plane_n"]),
                             mi.Float(c["plane_off"].astype(np.float32)))
         return self._dr_all
+
+    def _blocked_arcs(self):
+        """Where another solid lies against a (source, wedge) pair's edge, the arc of its exterior
+        angle inside that solid, as Dr.Jit arrays (lo, hi) of the cone angle ``phi`` (rad, Sionna's
+        frame of :func:`keller_cone`: a diffracted direction there is blocked where ``lo <= phi
+        <= hi``; none: ``lo > hi``), and ``host``: the pairs whose arc is tested per sample on the
+        host instead (:meth:`_outside_solids`); None where no pair has one. Built once per
+        :meth:`find_wedges`, per wedge whatever its sources.
+
+        A point :data:`INSIDE_PROBE_M` out from the edge at each of :data:`BLOCKED_ARC_PROBES`
+        angles across the exterior (square to the edge), at each of :data:`BLOCKED_ARC_STATIONS`
+        along it, is tested for lying inside a solid (:func:`simart_pipeline.ckm.outdoor.points_inside`).
+        Near the edge a solid bounded by faces through it blocks one arc, the same all along: where
+        the stations agree and the blocked angles are one run, its ends are found by bisection at
+        the middle station (:data:`BLOCKED_ARC_BISECTIONS` halvings of the probes' spacing). A
+        solid against part of the edge only, or two blocked runs: tested per sample.
+
+        On Munich a building's roof and walls are separate meshes, so each roof edge is a free edge
+        (a plate's, 360 degrees of exterior) whose lower quarter lies inside the building, and where
+        two building parts meet, one part's corner diffracts into the other; with every mechanism
+        43 % of the diffraction samples left into a solid (docs/ckm-one-pass.md "Session 45")."""
+        from simart_pipeline.ckm.outdoor import points_inside, radio_solids
+
+        mi = self.mi
+        if self._blocked is None:
+            if self.solids is None:
+                self.solids = radio_solids(self.radio)
+            c = self._wedge_np
+            keys = np.column_stack([c["shape"], c["prim0"], c["local_edge"]]).astype(np.int64)
+            _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+            inverse = inverse.ravel()
+            o, e, n0, nn, length = (np.asarray(c[k][first], np.float64) for k in ("o", "e_hat", "n0", "nn", "length"))
+            t0 = np.cross(n0, e)
+            t0 /= np.maximum(np.linalg.norm(t0, axis=1, keepdims=True), 1e-12)
+            exterior = 2.0 * np.pi - np.arccos(np.clip(-np.einsum("ij,ij->i", n0, nn), -1.0, 1.0))
+            free = c["prim0"][first] == c["primn"][first]
+            ne = np.where(free[:, None], 0.0, n0 + nn)
+            ne /= np.maximum(np.linalg.norm(ne, axis=1, keepdims=True), 1e-12)
+
+            def probes(phi, u):  # phi [w, m] rad, u [w] or a number: the station along the edge
+                out = np.cos(phi)[..., None] * t0[:, None] + np.sin(phi)[..., None] * n0[:, None]
+                at = o + (np.broadcast_to(u, len(o)) * length)[:, None] * e + SPAWN_OFFSET_M * ne
+                return at[:, None] + INSIDE_PROBE_M * out  # [w, m, 3]
+
+            def inside(pts):  # [..., 3] -> [...] bool, in one test
+                return points_inside(self.radio, pts.reshape(-1, 3), self.solids).reshape(pts.shape[:-1])
+
+            k = BLOCKED_ARC_PROBES
+            phi = (np.arange(k) + 0.5) / k * exterior[:, None]
+            stations = inside(np.stack([probes(phi, u) for u in BLOCKED_ARC_STATIONS]))  # [station, w, k]
+            mid = stations[len(BLOCKED_ARC_STATIONS) // 2]
+            any_blocked = stations.any(axis=(0, 2))
+            runs = (mid[:, 1:] & ~mid[:, :-1]).sum(1) + mid[:, 0]  # blocked runs at the middle station
+            arc = any_blocked & (stations == mid).all(axis=(0, 2)) & (runs == 1)
+            host = any_blocked & ~arc
+            lo, hi = np.ones(len(first)), -np.ones(len(first))
+            if arc.any():
+                a = np.flatnonzero(arc)
+                m = mid[a]
+                i_b = np.stack([np.argmax(m, 1), k - 1 - np.argmax(m[:, ::-1], 1)], 1)  # [arc, end]
+                i_f = i_b + np.array([-1, 1])  # the free neighbour of each end (off the exterior: none)
+                step = (exterior[a] / k)[:, None]
+                blocked_phi, free_phi = (i_b + 0.5) * step, (i_f + 0.5) * step
+                geo = (o[a], e[a], n0[a], t0[a], ne[a], length[a])
+                for _ in range(BLOCKED_ARC_BISECTIONS):  # both ends of every arc in one test
+                    half = 0.5 * (blocked_phi + free_phi)
+                    oa, ea, na, ta, nea, la = geo
+                    out = np.cos(half)[..., None] * ta[:, None] + np.sin(half)[..., None] * na[:, None]
+                    pts = (oa + 0.5 * la[:, None] * ea + SPAWN_OFFSET_M * nea)[:, None] + INSIDE_PROBE_M * out
+                    ins = inside(pts)
+                    blocked_phi = np.where(ins, half, blocked_phi)
+                    free_phi = np.where(ins, free_phi, half)
+                ends = 0.5 * (blocked_phi + free_phi)
+                lo[a] = np.where(i_f[:, 0] < 0, 0.0, ends[:, 0]) - BLOCKED_ARC_MARGIN_RAD
+                hi[a] = np.where(i_f[:, 1] >= k, exterior[a], ends[:, 1]) + BLOCKED_ARC_MARGIN_RAD
+            lo, hi, host = lo[inverse], hi[inverse], host[inverse]
+            if not (any_blocked.any()):
+                self._blocked = False
+            else:
+                self._blocked = (mi.Float(lo.astype(np.float32)), mi.Float(hi.astype(np.float32)),
+                                 mi.Bool(host) if host.any() else None)
+        return self._blocked if self._blocked is not False else None
+
+    def _outside_solids(self, idx, pair, spawn, ko):
+        """``idx`` (kept sample lanes) less the samples of the pairs whose blocked arc is tested
+        per sample (:meth:`_blocked_arcs`) whose diffracted ray leaves into another solid: its point
+        :data:`INSIDE_PROBE_M` along ``ko`` from ``spawn`` lies inside one (on the host). Such a
+        ray would cross that solid without entering it, and with refraction leave it through a
+        far wall, one transmission short (Munich's cell (-18.5, -30) m: a 305 m path, a reflection,
+        a diffraction into the town hall's other part, a transmission out, 40 % of the cell's
+        power; docs/ckm-one-pass.md "Session 45"). Sionna's solvers launch these rays too;
+        :func:`simart_pipeline.radio.tracer.drop_paths_diffracted_into_solids` drops PathSolver's."""
+        from simart_pipeline.ckm.outdoor import points_inside
+
+        dr, mi = self.dr, self.mi
+        blocked = self._blocked_arcs()
+        if blocked is None or blocked[2] is None:
+            return idx
+        at = dr.compress(dr.gather(mi.Bool, blocked[2], dr.gather(mi.UInt32, pair, idx)))
+        if dr.width(at) == 0:
+            return idx
+        lanes = dr.gather(mi.UInt32, idx, at)
+        p = dr.gather(mi.Point3f, spawn, lanes) + INSIDE_PROBE_M * dr.gather(mi.Vector3f, ko, lanes)
+        dr.eval(p)
+        inside = points_inside(self.radio, np.stack([p.x.numpy(), p.y.numpy(), p.z.numpy()], -1), self.solids)
+        if not inside.any():
+            return idx
+        keep = np.ones(dr.width(idx), bool)
+        keep[at.numpy()[inside]] = False
+        return mi.UInt32(idx.numpy()[keep])
 
     def _wedge_geometry(self, index):
         """:meth:`_wedge_table`'s rows ``index`` (a UInt32 array): Dr.Jit gathers (numpy fancy
@@ -509,6 +634,13 @@ class DiffractionSampler:
         g = self._geometry(lattice["pair"], lattice["u"], lattice["v"], order)
         wedges, q, ne, ok, e_in, ki, s_prime, dep, ko, measure = (
             g[k] for k in ("wedges", "q", "ne", "ok", "e_in", "ki", "s_prime", "dep", "ko", "measure"))
+        blocked = self._blocked_arcs()
+        if blocked is not None:  # a direction into a solid against the edge: the sample is void
+            t0 = dr.normalize(dr.cross(wedges.n0, wedges.e_hat))
+            phi = dr.atan2(dr.dot(ko, wedges.n0), dr.dot(ko, t0))
+            phi = dr.select(phi < 0, phi + dr.two_pi, phi)
+            ok &= ~((phi >= dr.gather(mi.Float, blocked[0], lattice["pair"]))
+                    & (phi <= dr.gather(mi.Float, blocked[1], lattice["pair"])))
         # leave the edge by a millimetre into the exterior (ne + ko points there for any ko on the
         # cone), else the first intersection is the wedge's own face at t ~ 0
         ray = mi.Ray3f(q + SPAWN_OFFSET_M * (ne + ko), ko)
@@ -529,7 +661,7 @@ class DiffractionSampler:
             kept_lattice.append(lattice["index"])
         dr.eval(ok, s_ref, t_first, shape_id, first.prim_index, q, ki, ko, s_prime, ray.o, dep, e_in, measure,
                 *kept_lattice)
-        idx = dr.compress(ok)
+        idx = self._outside_solids(dr.compress(ok), lattice["pair"], ray.o, ko)
         if dr.width(idx) == 0:
             return
         take = lambda x: dr.gather(type(x), x, idx)  # noqa: E731

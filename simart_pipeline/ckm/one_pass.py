@@ -1014,7 +1014,7 @@ def one_pass_moments(radio, tx_position_m, tx_orientation_rad, x_m: np.ndarray, 
             after = depth - 1 if depth and diffraction_with_reflections else 0
             wedges = DiffractionSampler(radio, tracer, tx_position_m, rot, grid, after,
                                         edge_diffraction,
-                                        reflections_before=reflections_before)
+                                        reflections_before=reflections_before, solids=solids)
             wedges.find_wedges(int(num_rays), int(batch_rays))
             wedges.trace(int(DIRECT_SAMPLES_PER_RAY * num_rays if diffraction_samples is None else diffraction_samples),
                          SAMPLES_PER_BATCH_RAY * int(batch_rays), sink, tag_stretches=resample > 1)

@@ -9,7 +9,7 @@ interaction sequence, so that two runs compare entry by entry.
 Entries that hold no path (``valid`` false) are filled, never left as Sionna leaves them: ``a = 0``,
 ``tau_s = -1`` (an impossible delay), zero angles, Doppler and interaction points.
 
-Three guards keep every path once and only once, and every kept one finite:
+Four guards keep every path once and only once, every kept one finite and physical:
 
 - Duplicates: PathSolver sometimes returns one path twice (same objects and primitives, vertices
   millimetres apart), which adds 3 dB to a link's gain. :func:`drop_duplicate_paths` keeps the first.
@@ -17,6 +17,14 @@ Three guards keep every path once and only once, and every kept one finite:
   line-of-sight entry with a NaN amplitude for 5 of 360 receivers in Sionna's street canyon, which
   made every sum over the receiver's paths NaN. :func:`drop_non_finite_paths` marks such entries
   invalid (``RadioScene.non_finite_paths`` counts them).
+- Diffraction into a solid: Sionna's wedges are each mesh's own edges, so where two building parts
+  meet (Munich's OSM-derived town hall, a corner of one part against the other's wall) a corner
+  diffracts into the other part's interior, and with refraction the path leaves it through a far
+  wall, one transmission short: at Munich's cell (-114.5, 162) m such a path (diffraction, a
+  reflection inside the part, a transmission out) was 56 % of PathSolver's gain.
+  :func:`drop_paths_diffracted_into_solids` drops every path whose diffraction moves it into or out
+  of a solid of the static scene (``RadioScene.paths_diffracted_into_solids`` counts them); the
+  one-pass CKM's diffracted rays obey the same rule (:mod:`simart_pipeline.ckm.diffraction`).
 - Candidate cap: Sionna stores at most ``max_num_paths_per_src`` candidates per source over all
   receivers of a call and drops the rest without a word (diffraction keeps every candidate). The
   tracer counts the candidates of each call; a call that reaches the cap is split in two (or, for
@@ -57,6 +65,10 @@ MAX_SAMPLES_X_RECEIVERS_PER_CALL = 2**31
 # every vertex is this close: Sionna's duplicates differ by millimetres; two distinct paths with
 # the same primitives (one specular point per primitive chain) cannot be 1 cm apart.
 DUPLICATE_VERTEX_TOLERANCE_M = 0.01
+# A leg of a path next to a diffraction is tested for lying inside a solid at its midpoint (a leg
+# between two vertices crosses no face: it lies inside a solid all along or nowhere); legs shorter
+# than this are not judged (a midpoint that close to a face may fall on either side).
+MIN_JUDGED_LEG_M = 0.1
 INVALID_ID = np.uint32(0xFFFFFFFF)
 # Actor parts are thin shells (sheet metal, glass panes, a rotor): their slab thickness (m).
 ACTOR_PART_THICKNESS_M = 0.01
@@ -155,6 +167,8 @@ class RadioScene:
         self.solvers = {True: rt.PathSolver(deterministic=True), False: rt.PathSolver(deterministic=False)}
         self.cap_retries = 0  # solver calls rerun because their candidates reached the configured cap
         self.non_finite_paths = 0  # valid entries with a non-finite amplitude, dropped (module docstring)
+        self.paths_diffracted_into_solids = 0  # ... whose diffraction enters or leaves a solid, dropped
+        self._static_solids = None  # the static scene's solids (scene.solids), made on first need
         self.learned_cap_retries = 0  # ... reached a cap learned from earlier calls (rerun at the configured)
         # most candidates per source and receiver of any call so far, per candidate generator
         # (deterministic or Sionna's default: the default stores more per receiver)
@@ -344,7 +358,7 @@ class RadioScene:
                 # each call's paths cleaned and cut to its most valid paths as it comes: only
                 # those stay in memory (with diffuse reflection a call's arrays are padded to
                 # tens of thousands of candidates; every call's at once ran a 24 GB machine out)
-                chunks += [self._cleaned(c, with_vertices) for c in self._solve(
+                chunks += [self._cleaned(c, with_vertices, tx_positions) for c in self._solve(
                     idx, cap, num_tx, rx_positions, rx_velocities, rx_orientations_rad, deterministic, limit)]
         finally:
             for i in range(num_tx):
@@ -356,11 +370,12 @@ class RadioScene:
         names = {f.name for f in fields(TracedPaths)}
         return TracedPaths(**{k: v for k, v in d.items() if k in names})
 
-    def _cleaned(self, d: dict[str, np.ndarray], with_vertices: bool) -> dict[str, np.ndarray]:
-        """One call's paths: actors named, non-finite and duplicate paths dropped, sorted
+    def _cleaned(self, d: dict[str, np.ndarray], with_vertices: bool, tx_positions: np.ndarray) -> dict[str, np.ndarray]:
+        """One call's paths: actors named, non-finite, duplicate and diffracted-into-solid paths dropped, sorted
         (:func:`_ordered`), and cut to the most valid paths of any of its (receiver, transmitter)
         pairs. Every step is per pair, so calls cleaned apart and then joined give what the
         joined calls cleaned at once would (up to the invalid padding at the end)."""
+        rx_positions = d.pop("rx_positions_m")
         obj = d["objects"].astype(np.int64)
         table = np.append(self._object_actor, NO_ACTOR).astype(np.int16)  # last: any other id
         d["actor"] = table[np.where((obj >= 0) & (obj < len(self._object_actor)), obj, len(table) - 1)]
@@ -368,12 +383,35 @@ class RadioScene:
         self.non_finite_paths += dropped
         # Sorted first so that the path kept of two duplicates is the earlier one, whatever order
         # the solver returned them in; sorted again after (valid first)
-        d = _ordered(drop_duplicate_paths(_ordered(d)))
+        d = drop_duplicate_paths(_ordered(d))
+        if (d["interaction"] == InteractionKind.DIFFRACTION).any():
+            d, dropped = drop_paths_diffracted_into_solids(d, tx_positions, rx_positions, self.points_inside)
+            self.paths_diffracted_into_solids += dropped
+        d = _ordered(d)
         if not with_vertices:
             d.pop("vertices_m")
         n = int(d["valid"].sum(axis=-1).max(initial=0))  # the valid paths lead every pair's row
         # copies, not views: a view would keep the padded arrays alive
         return {k: np.ascontiguousarray(v[..., :n, :] if k == "vertices_m" else v[..., :n]) for k, v in d.items()}
+
+    def points_inside(self, points_m: np.ndarray) -> np.ndarray:
+        """``[N]`` bool: which of ``points_m [N, 3]`` lie inside a solid of the static scene (the
+        buildings; actors are thin shells and move: :func:`simart_pipeline.ckm.outdoor.points_inside`
+        on the scene's meshes less the actors' parts, their solids made once)."""
+        from simart_pipeline.ckm.outdoor import points_inside
+        from simart_pipeline.scene.solids import mesh_solids
+
+        if self._static_solids is None:
+            actor_shapes = {obj.mi_mesh.id() for _, obj, _ in self._actor_parts}
+            tris = [np.zeros((0, 3, 3))]
+            for shape in self.scene.mi_scene.shapes():
+                if not shape.is_mesh() or shape.id() in actor_shapes:
+                    continue
+                v = shape.vertex_positions_buffer().numpy().reshape(-1, 3).astype(np.float64)
+                f = shape.faces_buffer().numpy().reshape(-1, 3).astype(np.int64)
+                tris.append(v[f])
+            self._static_solids = mesh_solids(np.concatenate(tris))
+        return points_inside(self, np.asarray(points_m, np.float64).reshape(-1, 3), self._static_solids)
 
     def _learned_cap(self, num_rx: int, limit: int, deterministic: bool = True) -> int:
         """The candidate cap of a call of ``num_rx`` receivers: the configured ``limit`` until a
@@ -419,6 +457,7 @@ class RadioScene:
             if not saturated:
                 out = _to_numpy(paths, num_tx, len(idx), rt_cfg.max_depth,
                                 self.scene.rx_array.num_ant, self.scene.tx_array.num_ant)
+                out["rx_positions_m"] = np.asarray(rx_positions, np.float64)[idx]
         finally:
             for i in idx:
                 self.scene.remove(f"rx{i}")
@@ -539,6 +578,46 @@ def drop_duplicate_paths(d: dict[str, np.ndarray],
     out["valid"] = valid
     out["a"] = np.where(valid[:, None, :, None, :], d["a"], 0)
     return out
+
+
+def drop_paths_diffracted_into_solids(d: dict[str, np.ndarray], tx_positions_m: np.ndarray,
+                                      rx_positions_m: np.ndarray, points_inside) -> tuple[dict[str, np.ndarray], int]:
+    """Mark invalid every path with a diffraction whose leg in and leg out do not both lie
+    outside, or both inside, a solid (``points_inside``: ``[N, 3]`` points to ``[N]`` bool, tested at
+    each leg's midpoint; legs shorter than :data:`MIN_JUDGED_LEG_M` are not judged): a diffracted
+    ray leaves its wedge into the same region it came from, and a path that crosses a building's
+    interior without entering it lacks a transmission. Returns ``d`` with ``valid`` updated and how
+    many paths were dropped.
+
+    ``d`` holds ``valid`` [rx, tx, path], ``interaction`` [rx, tx, depth, path] and ``vertices_m``
+    [rx, tx, depth, path, 3]; ``tx_positions_m`` [tx, 3] and ``rx_positions_m`` [rx, 3] end the
+    first and last legs."""
+    inter, valid = d["interaction"], d["valid"]
+    depth = inter.shape[2]
+    r, t, k, p = np.nonzero((inter == InteractionKind.DIFFRACTION) & valid[:, :, None, :])
+    if not len(r):
+        return d, 0
+    vert = d["vertices_m"].astype(np.float64)
+    tx, rx = np.asarray(tx_positions_m, np.float64), np.asarray(rx_positions_m, np.float64)
+    q = vert[r, t, k, p]
+    prev = np.where((k > 0)[:, None], vert[r, t, np.maximum(k - 1, 0), p], tx[t])
+    k_next = np.minimum(k + 1, depth - 1)
+    has_next = (k + 1 < depth) & (inter[r, t, k_next, p] != InteractionKind.NONE)
+    nxt = np.where(has_next[:, None], vert[r, t, k_next, p], rx[r])
+    judged = (np.isfinite(prev).all(1) & np.isfinite(q).all(1) & np.isfinite(nxt).all(1)
+              & (np.linalg.norm(q - prev, axis=1) >= MIN_JUDGED_LEG_M)
+              & (np.linalg.norm(nxt - q, axis=1) >= MIN_JUDGED_LEG_M))
+    if not judged.any():
+        return d, 0
+    r, t, p, prev, q, nxt = r[judged], t[judged], p[judged], prev[judged], q[judged], nxt[judged]
+    inside = np.asarray(points_inside(np.concatenate([(prev + q) / 2, (q + nxt) / 2])), bool).reshape(2, -1)
+    bad = inside[0] != inside[1]
+    if not bad.any():
+        return d, 0
+    valid = valid.copy()
+    valid[r[bad], t[bad], p[bad]] = False
+    dropped = int(np.count_nonzero(d["valid"] & ~valid))
+    return {**d, "valid": valid}, dropped
 
 
 def _to_numpy(paths, num_tx: int, num_rx: int, max_depth: int, rx_ant: int,
