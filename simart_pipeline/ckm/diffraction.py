@@ -292,7 +292,7 @@ class DiffractionSampler:
         On Munich a building's roof and walls are separate meshes, so each roof edge is a free edge
         (a plate's, 360 degrees of exterior) whose lower quarter lies inside the building, and where
         two building parts meet, one part's corner diffracts into the other; with every mechanism
-        43 % of the diffraction samples left into a solid (docs/ckm-one-pass.md "Session 45")."""
+        42 % of the diffraction samples left into a solid (docs/ckm-one-pass.md "Session 45")."""
         from simart_pipeline.ckm.outdoor import points_inside, radio_solids
 
         mi = self.mi
@@ -348,12 +348,9 @@ class DiffractionSampler:
                 lo[a] = np.where(i_f[:, 0] < 0, 0.0, ends[:, 0]) - BLOCKED_ARC_MARGIN_RAD
                 hi[a] = np.where(i_f[:, 1] >= k, exterior[a], ends[:, 1]) + BLOCKED_ARC_MARGIN_RAD
             lo, hi, host = lo[inverse], hi[inverse], host[inverse]
-            if not (any_blocked.any()):
-                self._blocked = False
-            else:
-                self._blocked = (mi.Float(lo.astype(np.float32)), mi.Float(hi.astype(np.float32)),
-                                 mi.Bool(host) if host.any() else None)
-        return self._blocked if self._blocked is not False else None
+            self._blocked = () if not any_blocked.any() else (  # (): built, none blocked
+                mi.Float(lo.astype(np.float32)), mi.Float(hi.astype(np.float32)), mi.Bool(host) if host.any() else None)
+        return self._blocked or None
 
     def _outside_solids(self, idx, pair, spawn, ko):
         """``idx`` (kept sample lanes) less the samples of the pairs whose blocked arc is tested

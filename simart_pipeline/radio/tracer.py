@@ -17,11 +17,12 @@ Four guards keep every path once and only once, every kept one finite and physic
   line-of-sight entry with a NaN amplitude for 5 of 360 receivers in Sionna's street canyon, which
   made every sum over the receiver's paths NaN. :func:`drop_non_finite_paths` marks such entries
   invalid (``RadioScene.non_finite_paths`` counts them).
-- Diffraction into a solid: Sionna's wedges are each mesh's own edges, so where two building parts
-  meet (Munich's OSM-derived town hall, a corner of one part against the other's wall) a corner
-  diffracts into the other part's interior, and with refraction the path leaves it through a far
-  wall, one transmission short: at Munich's cell (-114.5, 162) m such a path (diffraction, a
-  reflection inside the part, a transmission out) was 56 % of PathSolver's gain.
+- Diffraction into a solid: Sionna's wedges are each mesh's own edges. Where a building's roof is
+  a mesh of its own (Sionna's Munich), every roof edge is a plate's free edge whose lower quarter
+  lies inside the building; where two building parts meet, a corner of one diffracts into the
+  other. With refraction such a path leaves the building through a wall, one transmission short:
+  at Munich's cell (-114.5, 162) m one (a roof edge, a reflection inside, a transmission out) was
+  56 % of PathSolver's gain.
   :func:`drop_paths_diffracted_into_solids` drops every path whose diffraction moves it into or out
   of a solid of the static scene (``RadioScene.paths_diffracted_into_solids`` counts them); the
   one-pass CKM's diffracted rays obey the same rule (:mod:`simart_pipeline.ckm.diffraction`).
