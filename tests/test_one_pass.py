@@ -928,7 +928,7 @@ def test_no_diffracted_ray_leaves_into_a_solid(tmp_path, monkeypatch):
     are dropped (but for rays that graze the face at an arc's end: BLOCKED_ARC_MARGIN_RAD).
     Without the rule about a third of them lie inside (a plate edge's lower quarter, the facade
     corners' quarter towards the other part). Mutant: the arcs' angle from t0 and n0 swapped
-    drops the wrong quarter and fails both checks."""
+    drops the wrong quarter and fails the test."""
     from simart_pipeline.ckm import diffraction as dif
     from simart_pipeline.ckm.outdoor import points_inside, radio_solids
     from simart_pipeline.scene.solids import inside_solids

@@ -311,17 +311,18 @@ class DiffractionSampler:
             ne = np.where(free[:, None], 0.0, n0 + nn)
             ne /= np.maximum(np.linalg.norm(ne, axis=1, keepdims=True), 1e-12)
 
-            def probes(phi, u):  # phi [w, m] rad, u [w] or a number: the station along the edge
-                out = np.cos(phi)[..., None] * t0[:, None] + np.sin(phi)[..., None] * n0[:, None]
-                at = o + (np.broadcast_to(u, len(o)) * length)[:, None] * e + SPAWN_OFFSET_M * ne
-                return at[:, None] + INSIDE_PROBE_M * out  # [w, m, 3]
+            def probes(rows, phi, u):  # wedges rows, phi [rows, m] rad, u: the station along the edge
+                out = np.cos(phi)[..., None] * t0[rows, None] + np.sin(phi)[..., None] * n0[rows, None]
+                at = o[rows] + (u * length[rows])[:, None] * e[rows] + SPAWN_OFFSET_M * ne[rows]
+                return at[:, None] + INSIDE_PROBE_M * out  # [rows, m, 3]
 
             def inside(pts):  # [..., 3] -> [...] bool, in one test
                 return points_inside(self.radio, pts.reshape(-1, 3), self.solids).reshape(pts.shape[:-1])
 
             k = BLOCKED_ARC_PROBES
             phi = (np.arange(k) + 0.5) / k * exterior[:, None]
-            stations = inside(np.stack([probes(phi, u) for u in BLOCKED_ARC_STATIONS]))  # [station, w, k]
+            every = np.arange(len(first))
+            stations = inside(np.stack([probes(every, phi, u) for u in BLOCKED_ARC_STATIONS]))  # [station, w, k]
             mid = stations[len(BLOCKED_ARC_STATIONS) // 2]
             any_blocked = stations.any(axis=(0, 2))
             runs = (mid[:, 1:] & ~mid[:, :-1]).sum(1) + mid[:, 0]  # blocked runs at the middle station
@@ -335,13 +336,9 @@ class DiffractionSampler:
                 i_f = i_b + np.array([-1, 1])  # the free neighbour of each end (off the exterior: none)
                 step = (exterior[a] / k)[:, None]
                 blocked_phi, free_phi = (i_b + 0.5) * step, (i_f + 0.5) * step
-                geo = (o[a], e[a], n0[a], t0[a], ne[a], length[a])
                 for _ in range(BLOCKED_ARC_BISECTIONS):  # both ends of every arc in one test
                     half = 0.5 * (blocked_phi + free_phi)
-                    oa, ea, na, ta, nea, la = geo
-                    out = np.cos(half)[..., None] * ta[:, None] + np.sin(half)[..., None] * na[:, None]
-                    pts = (oa + 0.5 * la[:, None] * ea + SPAWN_OFFSET_M * nea)[:, None] + INSIDE_PROBE_M * out
-                    ins = inside(pts)
+                    ins = inside(probes(a, half, 0.5))
                     blocked_phi = np.where(ins, half, blocked_phi)
                     free_phi = np.where(ins, free_phi, half)
                 ends = 0.5 * (blocked_phi + free_phi)

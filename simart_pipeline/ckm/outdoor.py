@@ -28,10 +28,13 @@ OUTDOOR_SAMPLES_PER_AXIS = 4
 DEFAULT_MIN_OUTDOOR_FRACTION = 0.5
 
 
-def radio_triangles(radio) -> np.ndarray:
-    """Every triangle of the radio scene's Mitsuba meshes, ``[F, 3, 3]`` (m, world frame)."""
+def radio_triangles(radio, skip_shapes=()) -> np.ndarray:
+    """Every triangle of the radio scene's Mitsuba meshes, ``[F, 3, 3]`` (m, world frame), less
+    those of the shapes whose Mitsuba ids ``skip_shapes`` names."""
     tris = [np.zeros((0, 3, 3))]
     for shape in radio.scene.mi_scene.shapes():
+        if shape.id() in skip_shapes:
+            continue
         if not shape.is_mesh():
             raise ValueError(f"shape {shape.id()!r} of the radio scene is not a triangle mesh")
         v = shape.vertex_positions_buffer().numpy().reshape(-1, 3).astype(np.float64)

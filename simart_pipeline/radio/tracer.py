@@ -384,10 +384,9 @@ class RadioScene:
         self.non_finite_paths += dropped
         # Sorted first so that the path kept of two duplicates is the earlier one, whatever order
         # the solver returned them in; sorted again after (valid first)
-        d = drop_duplicate_paths(_ordered(d))
-        if (d["interaction"] == InteractionKind.DIFFRACTION).any():
-            d, dropped = drop_paths_diffracted_into_solids(d, tx_positions, rx_positions, self.points_inside)
-            self.paths_diffracted_into_solids += dropped
+        d, dropped = drop_paths_diffracted_into_solids(drop_duplicate_paths(_ordered(d)), tx_positions, rx_positions,
+                                                       self.points_inside)
+        self.paths_diffracted_into_solids += dropped
         d = _ordered(d)
         if not with_vertices:
             d.pop("vertices_m")
@@ -399,19 +398,12 @@ class RadioScene:
         """``[N]`` bool: which of ``points_m [N, 3]`` lie inside a solid of the static scene (the
         buildings; actors are thin shells and move: :func:`simart_pipeline.ckm.outdoor.points_inside`
         on the scene's meshes less the actors' parts, their solids made once)."""
-        from simart_pipeline.ckm.outdoor import points_inside
+        from simart_pipeline.ckm.outdoor import points_inside, radio_triangles
         from simart_pipeline.scene.solids import mesh_solids
 
         if self._static_solids is None:
             actor_shapes = {obj.mi_mesh.id() for _, obj, _ in self._actor_parts}
-            tris = [np.zeros((0, 3, 3))]
-            for shape in self.scene.mi_scene.shapes():
-                if not shape.is_mesh() or shape.id() in actor_shapes:
-                    continue
-                v = shape.vertex_positions_buffer().numpy().reshape(-1, 3).astype(np.float64)
-                f = shape.faces_buffer().numpy().reshape(-1, 3).astype(np.int64)
-                tris.append(v[f])
-            self._static_solids = mesh_solids(np.concatenate(tris))
+            self._static_solids = mesh_solids(radio_triangles(self, skip_shapes=actor_shapes))
         return points_inside(self, np.asarray(points_m, np.float64).reshape(-1, 3), self._static_solids)
 
     def _learned_cap(self, num_rx: int, limit: int, deterministic: bool = True) -> int:
